@@ -1,0 +1,15 @@
+"""The one error type that user-facing code catches and prints as one line."""
+from __future__ import annotations
+
+
+class InputError(ValueError):
+    """Bad user input: names the file, the line (when known) and what is wrong."""
+
+    def __init__(self, path, message: str, line: int | None = None):
+        self.path = str(path) if path is not None else None
+        self.line = line
+        self.reason = message
+        where = self.path or "<input>"
+        if line is not None:
+            where = f"{where}:{line}"
+        super().__init__(f"{where}: {message}")
