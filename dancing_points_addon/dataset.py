@@ -1,0 +1,150 @@
+"""Salsa pairs at 30 Hz with the SPEC §5 split, mirror augmentation, npz cache.
+
+Subject 60 leads and 61 follows; take ``NN`` of both was captured together.
+Each 60 Hz take is resampled to 30 Hz by keeping every other frame
+(``n30 = ceil(n60 / 2)``); frames ``[0, floor(0.8 · n30))`` are train, the rest
+test. Only the split asked for is returned, so a training caller cannot touch a
+test frame. Mirroring reflects the world across x = 0 and swaps left/right
+joints; the mirrored leader is paired with the mirrored follower.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from .asf_amc import load_amc
+from .representation import contact_labels, root_from_motion
+from .skeleton import MIRROR
+
+SALSA_TAKES = tuple(f"{i:02d}" for i in range(1, 14))
+LEADER, FOLLOWER = "60", "61"
+TRAIN_SHARE = 0.8
+CACHE_VERSION = 2
+
+
+def n_train_frames(n30: int) -> int:
+    return int(np.floor(TRAIN_SHARE * n30))
+
+
+def split_range(n60: int, split: str) -> tuple[int, int]:
+    """30 Hz frame range ``[a, b)`` of a split for a take with ``n60`` frames."""
+    n30 = (n60 + 1) // 2
+    k = n_train_frames(n30)
+    if split == "train":
+        return 0, k
+    if split == "test":
+        return k, n30
+    raise ValueError(f"unknown split {split!r}")
+
+
+_M = np.diag([-1.0, 1.0, 1.0])
+
+
+def mirror(positions: np.ndarray, rotations: np.ndarray):
+    """Reflect across x = 0 and swap left/right: a valid motion of the mirrored body."""
+    pos = positions[:, MIRROR] * np.array([-1.0, 1.0, 1.0])
+    rot = _M @ rotations[:, MIRROR] @ _M
+    return pos, rot
+
+
+@dataclass
+class Dancer:
+    positions: np.ndarray  # (T, 31, 3)
+    rotations: np.ndarray  # (T, 31, 3, 3)
+    roots: np.ndarray  # (T, 4)
+    contacts: np.ndarray  # (T, 4) float 0/1
+
+    @classmethod
+    def from_arrays(cls, positions, rotations, fps=30.0):
+        return cls(positions, rotations, root_from_motion(positions, rotations),
+                   contact_labels(positions, fps).astype(np.float32))
+
+
+@dataclass
+class Clip:
+    name: str
+    leader: Dancer
+    follower: Dancer | None
+    mirrored: bool = False
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.leader.positions)
+
+
+def load_pair(data_dir, take: str, split: str):
+    """Leader and follower 30 Hz positions/rotations of one take's split."""
+    lead = load_amc(os.path.join(data_dir, f"{LEADER}_{take}.amc"))
+    fol = load_amc(os.path.join(data_dir, f"{FOLLOWER}_{take}.amc"))
+    if lead.n_frames != fol.n_frames:
+        raise ValueError(f"take {take}: leader and follower frame counts differ")
+    a, b = split_range(lead.n_frames, split)
+    lead, fol = lead.subsample(2), fol.subsample(2)
+    return (lead.positions[a:b], lead.rotations[a:b]), (fol.positions[a:b], fol.rotations[a:b])
+
+
+def build_clips(data_dir, split: str = "train", mirror_aug: bool = True, solo_dir=None):
+    """Clips of a split. ``solo_dir`` adds the solo takes (leader only, whole takes,
+    120 Hz -> 30 Hz by keeping every 4th frame) as extra tracking data."""
+    clips = []
+    for take in SALSA_TAKES:
+        (lp, lr), (fp, fr) = load_pair(data_dir, take, split)
+        clips.append(Clip(take, Dancer.from_arrays(lp, lr), Dancer.from_arrays(fp, fr)))
+        if mirror_aug:
+            clips.append(Clip(take + "m", Dancer.from_arrays(*mirror(lp, lr)),
+                              Dancer.from_arrays(*mirror(fp, fr)), True))
+    if solo_dir is not None and split == "train":
+        for f in sorted(os.listdir(solo_dir)):
+            if f.endswith(".amc"):
+                m = load_amc(os.path.join(solo_dir, f)).subsample(4)
+                clips.append(Clip("solo" + f[:-4], Dancer.from_arrays(m.positions, m.rotations), None))
+    return clips
+
+
+_KEYS = ("positions", "rotations", "roots", "contacts")
+
+
+def _cache_key(data_dir, split, mirror_aug, solo_dir):
+    h = hashlib.sha1()
+    for d in (data_dir, solo_dir):
+        if d is None:
+            continue
+        for f in sorted(os.listdir(d)):
+            st = os.stat(os.path.join(d, f))
+            h.update(f"{f}:{st.st_size}:{int(st.st_mtime)}".encode())
+    h.update(json.dumps([split, mirror_aug, solo_dir is not None, CACHE_VERSION]).encode())
+    return h.hexdigest()[:16]
+
+
+def load_clips(data_dir, split="train", mirror_aug=True, solo_dir=None, cache_dir="cache"):
+    """:func:`build_clips` through an ``.npz`` cache (keyed by the source files)."""
+    key = _cache_key(data_dir, split, mirror_aug, solo_dir)
+    path = os.path.join(cache_dir, f"salsa_{split}_{key}.npz") if cache_dir else None
+    if path and os.path.exists(path):
+        z = np.load(path, allow_pickle=False)
+        clips = []
+        for i, name in enumerate(z["names"]):
+            def dancer(role):
+                if f"{role}{i}_positions" not in z:
+                    return None
+                return Dancer(*(z[f"{role}{i}_{k}"] for k in _KEYS))
+            clips.append(Clip(str(name), dancer("L"), dancer("F"), bool(z["mirrored"][i])))
+        return clips
+    clips = build_clips(data_dir, split, mirror_aug, solo_dir)
+    if path:
+        os.makedirs(cache_dir, exist_ok=True)
+        arrays = {"names": np.array([c.name for c in clips]),
+                  "mirrored": np.array([c.mirrored for c in clips])}
+        for i, c in enumerate(clips):
+            for role, d in (("L", c.leader), ("F", c.follower)):
+                if d is not None:
+                    for k in _KEYS:
+                        arrays[f"{role}{i}_{k}"] = getattr(d, k)
+        tmp = path + ".tmp.npz"
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+    return clips

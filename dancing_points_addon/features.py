@@ -1,0 +1,133 @@
+"""Network feature layouts shared by training and the runtime (one source of truth).
+
+All functions are vectorised over a leading batch axis ``B``. Frames are 30 Hz.
+
+Mapping network (paper §4.3)
+    input   the leader's past 0.5 s (frames t−14 … t): per frame its root relative
+            to the window's first root (4) and its three tracked points in that
+            first root's frame (9)                                 -> 15 × 13 = 195
+    output  the next 1 s (frames t+1 … t+30) of both dancers: per frame and
+            dancer, the root relative to the leader's current root (4) and the
+            three tracked points in that frame's own root (9)      -> 30 × 26 = 780
+
+Tracking network (paper §4.2), one dancer
+    input   current pose in its own root F0: positions (93), rotations as 6D (186),
+            contacts (4); at the future keys ``TRACK_KEYS``: root relative to F0
+            (4) and tracked points in that key's own root (9)
+    output  at the same keys: root relative to F0 (4), positions (93) and 6D
+            rotations (186) in that key's own root, contacts (4)
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .representation import (rot6d, rot6d_to_matrix, rot_to_local, rot_to_world, root_compose,
+                             root_relative, to_local, to_world)
+
+FPS = 30.0
+PAST = 15
+FUTURE = 30
+N_JOINTS = 31
+TRACK_KEYS = np.array([1, 2, 4, 6, 9, 12, 15, 20, 25, 30])
+
+MAP_IN = PAST * 13
+MAP_OUT = FUTURE * 26
+POSE_DIM = N_JOINTS * 3 + N_JOINTS * 6 + 4
+TRACK_IN = POSE_DIM + len(TRACK_KEYS) * 13
+KEY_OUT = 4 + N_JOINTS * 3 + N_JOINTS * 6 + 4
+TRACK_OUT = len(TRACK_KEYS) * KEY_OUT
+
+
+def layout() -> dict:
+    """Feature layout, written into the ONNX metadata."""
+    return {"fps": FPS, "past": PAST, "future": FUTURE, "track_keys": TRACK_KEYS.tolist(),
+            "map_in": MAP_IN, "map_out": MAP_OUT, "track_in": TRACK_IN, "track_out": TRACK_OUT,
+            "key_out": KEY_OUT, "pose_dim": POSE_DIM, "rotation": "6d (first two columns)",
+            "root": "(x, z, cos, sin), heading from +Z towards +X"}
+
+
+def mapping_input(roots: np.ndarray, tracked: np.ndarray) -> np.ndarray:
+    """``roots (B, PAST, 4)``, ``tracked (B, PAST, 3, 3)`` world -> ``(B, MAP_IN)``."""
+    ref = roots[:, :1]
+    r = root_relative(ref, roots)
+    p = to_local(tracked, ref)
+    return np.concatenate([r, p.reshape(p.shape[:2] + (9,))], axis=-1).reshape(len(roots), -1)
+
+
+def _dancer_future(ref, roots, tracked):
+    r = root_relative(ref[:, None], roots)
+    p = to_local(tracked, roots).reshape(roots.shape[:2] + (9,))
+    return np.concatenate([r, p], axis=-1)
+
+
+def mapping_target(lead_root_t, lead_roots, lead_tracked, fol_roots, fol_tracked) -> np.ndarray:
+    """Future ``(B, FUTURE, …)`` world roots/tracked of both dancers -> ``(B, MAP_OUT)``."""
+    a = _dancer_future(lead_root_t, lead_roots, lead_tracked)
+    b = _dancer_future(lead_root_t, fol_roots, fol_tracked)
+    return np.concatenate([a, b], axis=-1).reshape(len(lead_root_t), -1)
+
+
+def decode_mapping(y: np.ndarray, lead_root_t: np.ndarray):
+    """``(B, MAP_OUT)`` -> per dancer (leader, follower): world roots ``(B, FUTURE, 4)``
+    and tracked points in their own roots ``(B, FUTURE, 3, 3)``."""
+    y = y.reshape(len(y), FUTURE, 2, 13)
+    out = []
+    for d in range(2):
+        rel = y[:, :, d, :4]
+        rel = rel.copy()
+        n = np.linalg.norm(rel[..., 2:4], axis=-1, keepdims=True)
+        rel[..., 2:4] /= np.maximum(n, 1e-9)
+        roots = root_compose(lead_root_t[:, None], rel)
+        out.append((roots, y[:, :, d, 4:].reshape(len(y), FUTURE, 3, 3)))
+    return out
+
+
+def pose_features(pos_local, rot_local, contacts) -> np.ndarray:
+    """``(B, 31, 3)``, ``(B, 31, 3, 3)``, ``(B, 4)`` -> ``(B, POSE_DIM)``."""
+    B = len(pos_local)
+    return np.concatenate([pos_local.reshape(B, -1), rot6d(rot_local).reshape(B, -1),
+                           contacts.reshape(B, 4)], axis=-1)
+
+
+def tracking_input(pose_feat, f0, key_roots, key_tracked_local) -> np.ndarray:
+    """Pose features ``(B, POSE_DIM)``, current root ``f0 (B, 4)``, world roots at the
+    keys ``(B, K, 4)`` and tracked points in their own roots ``(B, K, 3, 3)``."""
+    B = len(pose_feat)
+    r = root_relative(f0[:, None], key_roots)
+    fut = np.concatenate([r, key_tracked_local.reshape(B, len(TRACK_KEYS), 9)], axis=-1)
+    return np.concatenate([pose_feat, fut.reshape(B, -1)], axis=-1)
+
+
+def tracking_target(f0, key_roots, key_pos_world, key_rot_world, key_contacts) -> np.ndarray:
+    """Ground-truth future at the keys (world) -> ``(B, TRACK_OUT)``."""
+    B, K = key_roots.shape[:2]
+    r = root_relative(f0[:, None], key_roots)
+    p = to_local(key_pos_world, key_roots).reshape(B, K, -1)
+    q = rot6d(rot_to_local(key_rot_world, key_roots)).reshape(B, K, -1)
+    return np.concatenate([r, p, q, key_contacts.reshape(B, K, 4)], axis=-1).reshape(B, -1)
+
+
+def split_tracking_output(y: np.ndarray):
+    """``(B, TRACK_OUT)`` -> rel roots ``(B,K,4)``, local positions ``(B,K,31,3)``,
+    local rotations ``(B,K,31,3,3)``, contacts ``(B,K,4)``."""
+    B = len(y)
+    y = y.reshape(B, len(TRACK_KEYS), KEY_OUT)
+    rel = y[..., :4].copy()
+    rel[..., 2:4] /= np.maximum(np.linalg.norm(rel[..., 2:4], axis=-1, keepdims=True), 1e-9)
+    pos = y[..., 4:4 + 93].reshape(B, -1, N_JOINTS, 3)
+    rot = rot6d_to_matrix(y[..., 97:97 + 186].reshape(B, -1, N_JOINTS, 6))
+    con = y[..., 283:287]
+    return rel, pos, rot, con
+
+
+def pose_to_world(pos_local, rot_local, root):
+    return to_world(pos_local, root), rot_to_world(rot_local, root)
+
+
+def pose_to_local(pos_world, rot_world, root):
+    return to_local(pos_world, root), rot_to_local(rot_world, root)
+
+
+def window_indices(t: np.ndarray, n: int, offsets: np.ndarray) -> np.ndarray:
+    """Frame indices ``t + offsets`` clamped to ``[0, n)`` (padding by repetition)."""
+    return np.clip(t[:, None] + offsets[None, :], 0, n - 1)

@@ -1,0 +1,113 @@
+"""SPEC §6 evaluation metrics, each on one take; :func:`aggregate` frame-weights them.
+
+Every function takes positions ``(T, 31, 3)`` at 30 Hz in motion space (metres)
+and returns ``(sum, count)`` so that averages over several takes are
+frame-weighted, as the SPEC asks. Scored frames: ``mask`` (bool ``(T,)``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .representation import CONTACT_HEIGHT, CONTACT_SPEED, floor_levels, foot_speeds
+from .skeleton import FEET, HIPS, TRACKED, JOINT_INDEX
+
+SKATE_HEIGHT = 0.025
+WRISTS = (JOINT_INDEX["lwrist"], JOINT_INDEX["rwrist"])
+
+
+def _masked(values, mask):
+    v = values[mask]
+    return float(np.sum(v)), int(v.size)
+
+
+def tracking_error(pred, true, mask):
+    d = np.linalg.norm(pred[:, TRACKED] - true[:, TRACKED], axis=-1).mean(-1)
+    return _masked(d, mask)
+
+
+def fullbody_error(pred, true, mask):
+    d = np.linalg.norm(pred - true, axis=-1).mean(-1)
+    return _masked(d, mask)
+
+
+def hand_error(pred_lead, pred_follow, true_lead, true_follow, mask, near=0.15):
+    """On frames where the closest true leader/follower wrist pair is < 15 cm apart:
+    |predicted distance − true distance| of that pair."""
+    tl, tf = true_lead[:, WRISTS], true_follow[:, WRISTS]
+    pl, pf = pred_lead[:, WRISTS], pred_follow[:, WRISTS]
+    td = np.linalg.norm(tl[:, :, None] - tf[:, None, :], axis=-1).reshape(len(tl), 4)
+    pd = np.linalg.norm(pl[:, :, None] - pf[:, None, :], axis=-1).reshape(len(pl), 4)
+    pair = np.argmin(td, axis=1)
+    rows = np.arange(len(td))
+    sel = mask & (td[rows, pair] < near)
+    return _masked(np.abs(pd[rows, pair] - td[rows, pair]), sel)
+
+
+def hip_heading(pos):
+    """Hip heading angle (radians, about +Y from +Z) from forward = (lhip − rhip) × up."""
+    across = pos[:, HIPS[0]] - pos[:, HIPS[1]]
+    fwd = np.cross(across, np.array([0.0, 1.0, 0.0]))
+    return np.arctan2(fwd[:, 0], fwd[:, 2])
+
+
+def heading_error(pred, true, mask):
+    d = np.angle(np.exp(1j * (hip_heading(pred) - hip_heading(true))))
+    return _masked(np.degrees(np.abs(d)), mask)
+
+
+def circular_correlation(a, b):
+    """Circular correlation coefficient (Jammalamadaka–SenGupta) of two angle series."""
+    ma = np.angle(np.mean(np.exp(1j * a)))
+    mb = np.angle(np.mean(np.exp(1j * b)))
+    sa, sb = np.sin(a - ma), np.sin(b - mb)
+    den = np.sqrt(np.sum(sa * sa) * np.sum(sb * sb))
+    return float(np.sum(sa * sb) / den) if den > 0 else 0.0
+
+
+def contacts_spec(pos, floor, fps=30.0):
+    """SPEC §6 contacts of a motion given the floor levels (from the ground truth)."""
+    feet = pos[:, FEET]
+    return ((feet[..., 1] - floor) < CONTACT_HEIGHT) & (foot_speeds(feet, fps) < CONTACT_SPEED)
+
+
+def contact_counts(pred, true, mask, fps=30.0):
+    """(tp, fp, fn) of predicted vs true contacts; floor from the ground truth."""
+    floor = floor_levels(true[:, FEET, 1])
+    pc = contacts_spec(pred, floor, fps)[mask]
+    tc = contacts_spec(true, floor, fps)[mask]
+    return int(np.sum(pc & tc)), int(np.sum(pc & ~tc)), int(np.sum(~pc & tc))
+
+
+def foot_skating(pos, mask, floor=None, fps=30.0):
+    """Mean horizontal speed (cm/s) of foot points on frame pairs where the point
+    is < 2.5 cm above its floor level (both frames of the pair)."""
+    feet = pos[:, FEET]
+    if floor is None:
+        floor = floor_levels(feet[..., 1])
+    low = (feet[..., 1] - floor) < SKATE_HEIGHT
+    pair_low = low[1:] & low[:-1] & mask[1:, None] & mask[:-1, None]
+    v = np.linalg.norm(np.diff(feet[..., [0, 2]], axis=0), axis=-1) * fps * 100.0
+    return float(np.sum(v[pair_low])), int(np.sum(pair_low))
+
+
+def jitter(pos, mask, fps=30.0):
+    """Mean norm of the third finite difference of joint positions × fps³ (m/s³)."""
+    if len(pos) < 4:
+        return 0.0, 0
+    j = np.linalg.norm(np.diff(pos, n=3, axis=0), axis=-1).mean(-1) * fps ** 3
+    m = mask[3:] & mask[2:-1] & mask[1:-2] & mask[:-3]
+    return _masked(j, m)
+
+
+def aggregate(pairs):
+    """Frame-weighted mean of a list of ``(sum, count)``."""
+    s = sum(p[0] for p in pairs)
+    n = sum(p[1] for p in pairs)
+    return s / n if n else float("nan")
+
+
+def f1(counts):
+    tp = sum(c[0] for c in counts)
+    fp = sum(c[1] for c in counts)
+    fn = sum(c[2] for c in counts)
+    return 2 * tp / max(2 * tp + fp + fn, 1)

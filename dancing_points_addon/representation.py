@@ -1,0 +1,157 @@
+"""The paper's motion representation (Method §4.1), in numpy.
+
+A *root* is a floor frame ``F = (t, o)`` stored as ``(x, z, cos θ, sin θ)``:
+the head's position projected to the floor and its facing as a unit complex
+number. ``θ`` is the heading about +Y measured from +Z (a dancer facing +Z has
+θ = 0, facing +X has θ = π/2). Root frame → world: ``p = Ry(θ) · p_local + (x, 0, z)``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .skeleton import FEET, HEAD_BONE, TRACKED
+
+# The head device: local −Z forward, +Y up (SPEC §3). Rigid on the `head` bone
+# as ``R_device = R_head · Ry(180°)``.
+DEVICE_FROM_HEAD = np.diag([-1.0, 1.0, -1.0])
+
+CONTACT_HEIGHT = 0.06  # m above the floor level (SPEC §6)
+CONTACT_SPEED = 0.30  # m/s (SPEC §6)
+FLOOR_PERCENTILE = 5.0
+
+
+def device_rotation(head_bone_rotation: np.ndarray) -> np.ndarray:
+    """Head device orientation from the global rotation of the ``head`` bone."""
+    return head_bone_rotation @ DEVICE_FROM_HEAD
+
+
+def heading_vector(device_rot: np.ndarray) -> np.ndarray:
+    """Horizontal facing ``(…, 2)`` as (x, z), unit length, from device rotations.
+
+    Uses ``forward − up · forward_y``: equal to the forward direction for a level
+    head and still well defined when the head pitches straight down or up.
+    """
+    fwd = -device_rot[..., :, 2]
+    up = device_rot[..., :, 1]
+    d = fwd - up * fwd[..., 1:2]
+    h = np.stack([d[..., 0], d[..., 2]], axis=-1)
+    n = np.linalg.norm(h, axis=-1, keepdims=True)
+    # Degenerate only for a head lying on its side facing straight up/down.
+    return np.where(n > 1e-9, h / np.maximum(n, 1e-12), np.array([0.0, 1.0]))
+
+
+def root_from_head(head_pos: np.ndarray, device_rot: np.ndarray) -> np.ndarray:
+    """Roots ``(…, 4)`` from head positions ``(…, 3)`` and device rotations."""
+    h = heading_vector(device_rot)
+    # θ measured from +Z towards +X: (sin θ, cos θ) = (hx, hz)
+    return np.stack([head_pos[..., 0], head_pos[..., 2], h[..., 1], h[..., 0]], axis=-1)
+
+
+def root_from_motion(positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+    """Roots ``(T, 4)`` of a SPEC motion from its head point and head bone."""
+    return root_from_head(positions[..., TRACKED[0], :], device_rotation(rotations[..., HEAD_BONE, :, :]))
+
+
+def root_rotation(root: np.ndarray) -> np.ndarray:
+    """``Ry(θ)`` matrices ``(…, 3, 3)``."""
+    c, s = root[..., 2], root[..., 3]
+    out = np.zeros(root.shape[:-1] + (3, 3), dtype=root.dtype)
+    out[..., 0, 0] = c
+    out[..., 0, 2] = s
+    out[..., 1, 1] = 1.0
+    out[..., 2, 0] = -s
+    out[..., 2, 2] = c
+    return out
+
+
+def _origin(root):
+    o = np.zeros(root.shape[:-1] + (3,), dtype=root.dtype)
+    o[..., 0] = root[..., 0]
+    o[..., 2] = root[..., 1]
+    return o
+
+
+def to_local(points: np.ndarray, root: np.ndarray) -> np.ndarray:
+    """World points ``(…, N, 3)`` into the frames ``root (…, 4)``."""
+    r = root_rotation(root)
+    return np.einsum("...ba,...nb->...na", r, points - _origin(root)[..., None, :])
+
+
+def to_world(points: np.ndarray, root: np.ndarray) -> np.ndarray:
+    """Root-frame points ``(…, N, 3)`` to world."""
+    r = root_rotation(root)
+    return np.einsum("...ab,...nb->...na", r, points) + _origin(root)[..., None, :]
+
+
+def rot_to_local(rot: np.ndarray, root: np.ndarray) -> np.ndarray:
+    """World rotations ``(…, N, 3, 3)`` into the root frames."""
+    r = root_rotation(root)
+    return np.einsum("...ba,...nbc->...nac", r, rot)
+
+
+def rot_to_world(rot: np.ndarray, root: np.ndarray) -> np.ndarray:
+    r = root_rotation(root)
+    return np.einsum("...ab,...nbc->...nac", r, rot)
+
+
+def root_relative(ref: np.ndarray, root: np.ndarray) -> np.ndarray:
+    """``ref⁻¹ · root``: ``root`` expressed in the frame ``ref`` (both ``(…, 4)``)."""
+    dx = root[..., 0] - ref[..., 0]
+    dz = root[..., 1] - ref[..., 1]
+    c, s = ref[..., 2], ref[..., 3]
+    # Ry(θ)^T (dx, 0, dz): x' = c dx − s dz, z' = s dx + c dz
+    x = c * dx - s * dz
+    z = s * dx + c * dz
+    # heading difference as a unit complex number: o_root · conj(o_ref)
+    cr, sr = root[..., 2], root[..., 3]
+    return np.stack([x, z, cr * c + sr * s, sr * c - cr * s], axis=-1)
+
+
+def root_compose(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
+    """``ref · rel``: inverse of :func:`root_relative`."""
+    c, s = ref[..., 2], ref[..., 3]
+    x = ref[..., 0] + c * rel[..., 0] + s * rel[..., 1]
+    z = ref[..., 1] - s * rel[..., 0] + c * rel[..., 1]
+    cr, sr = rel[..., 2], rel[..., 3]
+    co, so = cr * c - sr * s, sr * c + cr * s
+    n = np.sqrt(co * co + so * so)
+    n = np.where(n > 0, n, 1.0)
+    return np.stack([x, z, co / n, so / n], axis=-1)
+
+
+def floor_levels(foot_heights: np.ndarray) -> np.ndarray:
+    """Per-point floor level ``(4,)``: 5th percentile of the height over a take."""
+    return np.nanpercentile(foot_heights, FLOOR_PERCENTILE, axis=0)
+
+
+def foot_speeds(feet: np.ndarray, fps: float) -> np.ndarray:
+    """Speed ``(T, 4)`` of the foot points ``(T, 4, 3)``; frame 0 takes frame 1's."""
+    v = np.linalg.norm(np.diff(feet, axis=0), axis=-1) * fps
+    return np.concatenate([v[:1], v], axis=0) if len(v) else np.zeros(feet.shape[:2])
+
+
+def contact_labels(positions: np.ndarray, fps: float, floor: np.ndarray | None = None) -> np.ndarray:
+    """SPEC §6 foot contacts ``(T, 4)`` bool of a motion's joint positions ``(T, 31, 3)``.
+
+    In contact: less than 6 cm above the point's floor level (5th percentile of
+    its height over the take unless ``floor`` is given) and slower than 0.30 m/s.
+    """
+    feet = positions[:, FEET]
+    if floor is None:
+        floor = floor_levels(feet[..., 1])
+    return ((feet[..., 1] - floor) < CONTACT_HEIGHT) & (foot_speeds(feet, fps) < CONTACT_SPEED)
+
+
+def rot6d(rot: np.ndarray) -> np.ndarray:
+    """First two columns of rotation matrices, flattened: ``(…, 3, 3) -> (…, 6)``."""
+    return np.concatenate([rot[..., :, 0], rot[..., :, 1]], axis=-1)
+
+
+def rot6d_to_matrix(x: np.ndarray) -> np.ndarray:
+    """Gram–Schmidt back to rotation matrices: ``(…, 6) -> (…, 3, 3)``."""
+    a, b = x[..., 0:3], x[..., 3:6]
+    e1 = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
+    b = b - np.sum(e1 * b, axis=-1, keepdims=True) * e1
+    e2 = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-12)
+    e3 = np.cross(e1, e2)
+    return np.stack([e1, e2, e3], axis=-1)
