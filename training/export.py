@@ -1,0 +1,82 @@
+"""Export trained networks to ONNX with their feature layout as metadata.
+
+The exported tracker is the inference path only (estimator -> decoder) and
+keeps only the outputs the runtime reads: the first future key (the next
+frame). The exported mapping network keeps the future frames at the tracker's
+keys. Both are plain slices of the trained last layer, so ONNX and PyTorch
+agree on every kept output.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+
+import numpy as np
+import onnx
+import torch
+from torch import nn
+
+from dancing_points_addon import features as F
+from dancing_points_addon.skeleton import JOINT_NAMES
+
+OPSET = 17
+
+
+class _Sliced(nn.Module):
+    def __init__(self, model: nn.Module, keep: np.ndarray):
+        super().__init__()
+        self.model = model
+        self.register_buffer("keep", torch.as_tensor(keep, dtype=torch.long))
+
+    def forward(self, x):
+        return self.model(x).index_select(1, self.keep)
+
+
+def tracker_keep() -> np.ndarray:
+    return np.arange(F.KEY_OUT)  # key 1 = TRACK_KEYS[0]
+
+
+def mapping_keep() -> np.ndarray:
+    frames = F.TRACK_KEYS - 1
+    return (frames[:, None] * 26 + np.arange(26)[None, :]).reshape(-1)
+
+
+def git_commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                              cwd=os.path.dirname(os.path.abspath(__file__)), check=True).stdout.strip()
+    except Exception:
+        return "unknown"
+
+
+def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None = None):
+    """Write ``model`` (eval mode, CPU) as ONNX at ``path`` atomically."""
+    keep = tracker_keep() if kind.startswith("tracker") else mapping_keep()
+    wrapped = _Sliced(model.cpu().eval(), keep).eval()
+    dummy = torch.zeros(1, n_in)
+    tmp = path + ".tmp"
+    torch.onnx.export(wrapped, (dummy,), tmp, input_names=["x"], output_names=["y"],
+                      dynamic_axes={"x": {0: "batch"}, "y": {0: "batch"}}, opset_version=OPSET,
+                      dynamo=False)
+    m = onnx.load(tmp)
+    meta = {
+        "kind": kind,
+        "layout": json.dumps(F.layout()),
+        "fps": str(F.FPS),
+        "past_frames": str(F.PAST),
+        "future_frames": str(F.FUTURE),
+        "output_keys": json.dumps([1] if kind.startswith("tracker") else F.TRACK_KEYS.tolist()),
+        "skeleton": json.dumps(list(JOINT_NAMES)),
+        "data_split": "CMU salsa takes 01-13 at 30 Hz, frames [0, floor(0.8*n30)) of each take (SPEC §5); "
+                      "mirror augmented",
+        "git_commit": git_commit(),
+    }
+    meta.update({k: (v if isinstance(v, str) else json.dumps(v)) for k, v in (extra or {}).items()})
+    del m.metadata_props[:]
+    for k, v in meta.items():
+        p = m.metadata_props.add()
+        p.key, p.value = k, v
+    onnx.save(m, tmp)
+    os.replace(tmp, path)
+    return path
