@@ -1,0 +1,145 @@
+"""Command line (SPEC §7): ``python -m dancing_points_addon <command> ...``.
+
+Each subcommand is one ``cmd_<name>(args) -> int`` function plus one
+``_parser_<name>(subparsers)`` block registered in :data:`PARSERS`.
+
+Errors never show a traceback: bad input (an :class:`InputError`, a bad option)
+prints one line ``error: <file>:<line>: <what>`` on stderr and exits with 2;
+an unexpected failure prints one line and exits with 1 (``DP_DEBUG=1`` shows
+the traceback). Outputs are written atomically, so nothing half-written is
+ever left at an output path and an existing file survives a failed run.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+from .errors import InputError
+
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT = 0, 1, 2
+
+
+class UsageError(Exception):
+    """A bad command line (reported like bad input: one line, exit 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse would print the usage too: keep it one line
+        raise UsageError(f"{self.prog}: {message}")
+
+
+# --------------------------------------------------------------------------- option types
+
+def positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return v
+
+
+def height_metres(text: str) -> float:
+    v = positive_float(text)
+    if not 0.5 <= v <= 3.0:
+        raise argparse.ArgumentTypeError(f"must be a height in metres between 0.5 and 3.0, got {text!r}")
+    return v
+
+
+def add_input_arguments(p: argparse.ArgumentParser) -> None:
+    """INPUT and the options every input-reading command takes (SPEC §7)."""
+    p.add_argument("input", metavar="INPUT",
+                   help="take file (.csv), BVH file (.bvh) or CMU AMC file (.amc)")
+    p.add_argument("--input-fps", type=positive_float, default=None, metavar="F",
+                   help="override the input's frame rate (for a .csv: ignore its time "
+                        "column and use t0 + k/F)")
+    p.add_argument("--asf", default=None, metavar="PATH",
+                   help="ASF skeleton of an AMC input (default: found beside it)")
+    p.add_argument("--height", type=height_metres, default=None, metavar="H",
+                   help="the leader's height in metres (stored as height_m)")
+
+
+def check_output_path(path) -> None:
+    """Fail early, before any work, when ``path`` cannot be an output file."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(path, "output folder does not exist")
+    if os.path.isdir(path):
+        raise InputError(path, "output path is a folder")
+    if not os.access(folder, os.W_OK):
+        raise InputError(path, "output folder is not writable")
+
+
+def load_input_from_args(args):
+    from .take import load_input
+    return load_input(args.input, asf=args.asf, input_fps=args.input_fps, height=args.height)
+
+
+# --------------------------------------------------------------------------- extract
+
+def cmd_extract(args) -> int:
+    from .take import write_take
+
+    check_output_path(args.output)
+    take = load_input_from_args(args)
+    write_take(args.output, take)
+    dur = float(take.time[-1] - take.time[0])
+    rate = (take.n_frames - 1) / dur if dur > 0 else float("nan")
+    print(f"wrote {args.output}: {take.n_frames} rows, {dur:.2f} s, {rate:.1f} Hz")
+    return EXIT_OK
+
+
+def _parser_extract(sub) -> None:
+    p = sub.add_parser("extract", help="full-body motion -> three-point take at the source rate",
+                       description="Write the three-point take (SPEC §3) of a motion file: "
+                                   "head and wrist positions, head-device and wrist orientations, "
+                                   "at the input's own frame rate.")
+    add_input_arguments(p)
+    p.add_argument("-o", "--output", required=True, metavar="TAKE.csv", help="output take file")
+    p.set_defaults(func=cmd_extract)
+
+
+# --------------------------------------------------------------------------- main
+
+PARSERS = [_parser_extract]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="python -m dancing_points_addon",
+                     description="Dancing Points: a salsa duet from three tracked points.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for add in PARSERS:
+        add(sub)
+    return parser
+
+
+def _one_line(text) -> str:
+    return " ".join(str(text).split())
+
+
+def main(argv=None) -> int:
+    debug = os.environ.get("DP_DEBUG", "") not in ("", "0")
+    try:
+        args = build_parser().parse_args(argv)
+        return int(args.func(args) or 0)
+    except UsageError as exc:
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except InputError as exc:
+        if debug:
+            raise
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - never a raw traceback for users
+        if debug:
+            raise
+        print(f"error: internal error ({type(exc).__name__}: {_one_line(exc)}); "
+              f"run with DP_DEBUG=1 for details", file=sys.stderr)
+        return EXIT_FAILURE

@@ -1,0 +1,283 @@
+"""Online duet synthesis: three points in, two full-body poses out, 30 times a second.
+
+One loop serves the live preview and the offline bake: :meth:`Synthesizer.step`
+takes one 30 Hz three-point frame and returns the leader's and the follower's
+pose for that frame, using no later input; :meth:`Synthesizer.synthesize` runs
+the same loop over a whole take.
+
+Timing (see ``features``): the tracker state at step ``t`` holds each dancer's
+pose at ``t − 1``; its future keys ``t − 1 + k`` are the current input (key 1)
+and the mapping network's prediction from the input up to ``t`` (keys ≥ 2). The
+follower's key 1 comes from the previous step's mapping.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import features as F
+from .representation import (device_rotation, root_compose, root_from_head, rot_to_local,
+                             rot_to_world, to_local, to_world)
+from .rotations import quat_to_matrix
+from .skeleton import JOINT_NAMES, TRACKED
+
+MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
+MODEL_FILES = {"mapping": "mapping.onnx", "leader": "tracker_leader.onnx", "follower": "tracker_follower.onnx"}
+# Head height (end of `upperneck`, metres) of the training leader standing, and
+# the standing height it corresponds to: calibration uses their ratio.
+TRAIN_HEAD_HEIGHT = 1.47
+TRAIN_HEIGHT = 1.70
+
+
+class OnnxNet:
+    """One ONNX network on onnxruntime's CPU provider, batch 1."""
+
+    def __init__(self, path: str, threads: int = 1):
+        import onnxruntime as ort  # imported lazily: the core stays importable without it
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = max(1, int(threads))
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        self.path = path
+        self.session = ort.InferenceSession(path, sess_options=opts, providers=["CPUExecutionProvider"])
+        self.meta = dict(self.session.get_modelmeta().custom_metadata_map)
+        self.input = self.session.get_inputs()[0].name
+        self.output = self.session.get_outputs()[0].name
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return self.session.run([self.output], {self.input: np.ascontiguousarray(x, dtype=np.float32)})[0]
+
+
+@dataclass
+class DuetFrame:
+    positions: np.ndarray  # (31, 3) world
+    rotations: np.ndarray  # (31, 3, 3) world
+    contacts: np.ndarray  # (4,)
+
+
+@dataclass
+class Duet:
+    """A synthesised duet (SPEC §4)."""
+
+    time: np.ndarray
+    leader_positions: np.ndarray
+    leader_rotations: np.ndarray
+    leader_contacts: np.ndarray
+    follower_positions: np.ndarray
+    follower_rotations: np.ndarray
+    follower_contacts: np.ndarray
+    fps: float = F.FPS
+
+    @property
+    def n_frames(self):
+        return len(self.time)
+
+    def arrays(self) -> dict:
+        return {"fps": np.float64(self.fps), "time": self.time, "joint_names": np.array(JOINT_NAMES),
+                "leader_positions": self.leader_positions, "leader_rotations": self.leader_rotations,
+                "leader_contacts": self.leader_contacts, "follower_positions": self.follower_positions,
+                "follower_rotations": self.follower_rotations, "follower_contacts": self.follower_contacts}
+
+
+class _Dancer:
+    """Autoregressive state of one dancer's tracker."""
+
+    def __init__(self, net, default_pose: np.ndarray):
+        self.net = net
+        self.default_pose = default_pose
+        self.root = None  # F0 (4,)
+        self.pose = None  # (POSE_DIM,)
+
+    def place(self, root):
+        self.root = np.asarray(root, dtype=np.float64).copy()
+        self.pose = self.default_pose.copy()
+
+    def advance(self, key_roots, key_tracked):
+        """One tracker step; returns world positions, rotations, contacts of the new frame."""
+        x = F.tracking_input(self.pose[None], self.root[None], key_roots[None], key_tracked[None])
+        y = self.net(x).astype(np.float64)
+        rel, pos, rot, con = F.split_tracking_output(y[:, :F.KEY_OUT])
+        root = root_compose(self.root, rel[0, 0])
+        pos_l, rot_l = pos[0, 0], rot[0, 0]
+        con = np.clip(con[0, 0], 0.0, 1.0)
+        self.root = root
+        self.pose = F.pose_features(pos_l[None], rot_l[None], con[None])[0]
+        return to_world(pos_l, root), rot_to_world(rot_l, root), con
+
+
+class Synthesizer:
+    """Holds the three ONNX sessions and the rollout state.
+
+    ``height``: the leader's standing height in metres (None: estimated from the
+    head height seen so far). ``foot_lock``: contact-based foot locking (needs
+    ``ik``); ``hand_ik``: put the leader's head and wrists exactly on the input.
+    """
+
+    def __init__(self, model_dir: str | None = None, threads: int = 1, height: float | None = None,
+                 foot_lock: bool = True, hand_ik: bool = False, nets: dict | None = None):
+        model_dir = model_dir or MODEL_DIR
+        if nets is None:
+            nets = {k: OnnxNet(os.path.join(model_dir, f), threads) for k, f in MODEL_FILES.items()}
+        self.nets = nets
+        self.height = height
+        self.foot_lock = foot_lock
+        self.hand_ik = hand_ik
+        self.default_pose = {r: self._default_pose(nets[r]) for r in ("leader", "follower")}
+        self.reset()
+
+    @staticmethod
+    def _default_pose(net):
+        meta = getattr(net, "meta", {}) or {}
+        if "default_pose" not in meta:
+            raise ValueError(f"model {getattr(net, 'path', net)} has no default_pose metadata")
+        return np.asarray(json.loads(meta["default_pose"]), dtype=np.float64)
+
+    # -- state -----------------------------------------------------------------
+    def reset(self):
+        self.t = 0
+        self.hist_roots = np.zeros((F.PAST, 4))
+        self.hist_tracked = np.zeros((F.PAST, 3, 3))
+        self.leader = _Dancer(self.nets["leader"], self.default_pose["leader"])
+        self.follower = _Dancer(self.nets["follower"], self.default_pose["follower"])
+        self.prev_follower = None  # (root, tracked_local) predicted for frame t
+        self.last_valid = None  # last valid (positions (3,3), head rotation (3,3)) in input space
+        self.hand_local = None  # last valid hand positions in the head root frame (2, 3)
+        self._head_heights = []
+        self._lockers = None
+        self._effector = None
+        if self.foot_lock or self.hand_ik:
+            from . import ik
+            if self.foot_lock:
+                self._lockers = (ik.FootLocker(), ik.FootLocker())
+            if self.hand_ik:
+                self._effector = ik.EndEffectorIK()
+
+    def scale(self) -> float:
+        """Tracker scale: training height over the user's (SPEC/paper §7 calibration)."""
+        if self.height:
+            return TRAIN_HEIGHT / float(self.height)
+        if self._head_heights:
+            return TRAIN_HEAD_HEIGHT / float(np.median(self._head_heights))
+        return 1.0
+
+    # -- input cleaning --------------------------------------------------------
+    def _clean(self, positions, quats, valid):
+        """Hold lost devices: the head keeps its last pose, a hand keeps its last
+        place relative to the head's floor frame (so it travels with the body)."""
+        positions = np.asarray(positions, dtype=np.float64)
+        head_ok = bool(valid[0])
+        if head_ok:
+            head_pos = positions[0]
+            head_rot = quat_to_matrix(np.asarray(quats[0], dtype=np.float64))
+        elif self.last_valid is not None:
+            head_pos, head_rot = self.last_valid
+        else:
+            head_pos, head_rot = np.array([0.0, TRAIN_HEAD_HEIGHT, 0.0]), np.diag([-1.0, 1.0, -1.0])
+        root = root_from_head(head_pos, head_rot)
+        hands = np.empty((2, 3))
+        for i in (1, 2):
+            if valid[i]:
+                hands[i - 1] = positions[i]
+            elif self.hand_local is not None:
+                hands[i - 1] = to_world(self.hand_local[i - 1][None], root)[0]
+            else:
+                d = self.default_pose[("leader")][:93].reshape(31, 3)[TRACKED[i]]
+                hands[i - 1] = to_world(d[None], root)[0]
+        self.last_valid = (head_pos, head_rot)
+        self.hand_local = to_local(hands, root)
+        return np.concatenate([head_pos[None], hands], axis=0), head_rot
+
+    # -- one frame -------------------------------------------------------------
+    def step(self, positions, quats, valid=(True, True, True)):
+        """One 30 Hz frame: device positions (3, 3), quaternions (3, 4) (w, x, y, z),
+        ``valid`` (3,) tracking flags. Returns (leader, follower) :class:`DuetFrame`."""
+        tracked, head_rot = self._clean(positions, quats, valid)
+        if valid[0] and self.height is None:
+            self._head_heights.append(tracked[0, 1])
+        s = self.scale()
+        tracked_s = tracked * s
+        root = root_from_head(tracked_s[0], head_rot)
+        if self.t == 0:
+            self.hist_roots[:] = root
+            self.hist_tracked[:] = tracked_s
+            self.leader.place(root)
+        else:
+            self.hist_roots = np.roll(self.hist_roots, -1, axis=0)
+            self.hist_tracked = np.roll(self.hist_tracked, -1, axis=0)
+            self.hist_roots[-1] = root
+            self.hist_tracked[-1] = tracked_s
+        y = self.nets["mapping"](F.mapping_input(self.hist_roots[None], self.hist_tracked[None]))
+        (l_roots, l_tr), (f_roots, f_tr) = F.decode_mapping(y.astype(np.float64), root[None])
+        l_roots, l_tr, f_roots, f_tr = l_roots[0], l_tr[0], f_roots[0], f_tr[0]
+        if self.t == 0:
+            self.follower.place(f_roots[0])
+            self.prev_follower = (f_roots[0], f_tr[0])
+        cur_local = to_local(tracked_s, root)
+        lk_roots, lk_tr = self._leader_keys(root, cur_local, l_roots, l_tr)
+        fk_roots, fk_tr = self._follower_keys(f_roots, f_tr, l_roots, l_tr)
+        self.prev_follower = (f_roots[0], f_tr[0])
+        lp, lr, lc = self.leader.advance(lk_roots, lk_tr)
+        fp, fr, fc = self.follower.advance(fk_roots, fk_tr)
+        if self._lockers is not None:
+            lp, lr = self._lockers[0].step(lp, lr, lc)
+            fp, fr = self._lockers[1].step(fp, fr, fc)
+        if self._effector is not None:
+            lp, lr = self._effector.step(lp, lr, tracked_s)
+        self.t += 1
+        inv = 1.0 / s
+        return DuetFrame(lp * inv, lr, lc), DuetFrame(fp * inv, fr, fc)
+
+    # mapping index of frame t − 1 + k for the keys k >= 2 (index 0 is frame t + 1)
+    _OFF = F.TRACK_KEYS[1:] - 2
+
+    def _leader_keys(self, root, cur_local, l_roots, l_tr):
+        """Leader's key inputs: the current input frame, then the mapping's prediction."""
+        return (np.concatenate([root[None], l_roots[self._OFF]]),
+                np.concatenate([cur_local[None], l_tr[self._OFF]]))
+
+    def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
+        """Follower's key inputs: last step's prediction of frame t, then this step's."""
+        return (np.concatenate([self.prev_follower[0][None], f_roots[self._OFF]]),
+                np.concatenate([self.prev_follower[1][None], f_tr[self._OFF]]))
+
+    # -- a whole take ----------------------------------------------------------
+    def synthesize(self, take, progress=None) -> Duet:
+        """Resample ``take`` to 30 Hz and run :meth:`step` over it from a fresh state."""
+        from .resample import resample_take
+
+        tk = resample_take(take, F.FPS)
+        self.reset()
+        T = tk.n_frames
+        out = {k: np.empty((T, 31, 3)) for k in ("lp", "fp")}
+        out.update({k: np.empty((T, 31, 3, 3)) for k in ("lr", "fr")})
+        out.update({k: np.empty((T, 4)) for k in ("lc", "fc")})
+        valid = tk.valid
+        for t in range(T):
+            a, b = self.step(tk.positions[t], tk.quats[t], valid[t])
+            out["lp"][t], out["lr"][t], out["lc"][t] = a.positions, a.rotations, a.contacts
+            out["fp"][t], out["fr"][t], out["fc"][t] = b.positions, b.rotations, b.contacts
+            if progress is not None and (t % 30 == 0 or t == T - 1):
+                if progress(t + 1, T) is False:
+                    raise KeyboardInterrupt("cancelled")
+        return Duet(tk.time, out["lp"], out["lr"], out["lc"], out["fp"], out["fr"], out["fc"])
+
+
+def save_npz(duet: Duet, path: str):
+    """Write a duet (SPEC §4) atomically."""
+    path = str(path)
+    tmp = os.path.join(os.path.dirname(os.path.abspath(path)), f".{os.path.basename(path)}.tmp.npz")
+    try:
+        np.savez_compressed(tmp, **duet.arrays())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def head_device_rotation(head_bone_rotation):
+    return device_rotation(head_bone_rotation)

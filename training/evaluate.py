@@ -1,0 +1,297 @@
+"""Closed-loop evaluation per SPEC §6, with the paper's ablations.
+
+    python -m training.evaluate --data ../shared/data/cmu_salsa --models models \
+        [--ablations cache/ablations] [--json out.json] [--markdown table.md]
+
+For each of the 13 takes the leader's *test* frames are written as a take file
+(SPEC §3, native 60 Hz, time from 0), read back, and run through the product
+runtime from its default initial state; the 30 Hz output is compared with both
+dancers' ground truth. The first 1.0 s is not scored; every metric is
+frame-weighted over all takes.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+
+import numpy as np
+
+from dancing_points_addon import features as F
+from dancing_points_addon import metrics as M
+from dancing_points_addon.asf_amc import load_amc
+from dancing_points_addon.dataset import FOLLOWER, LEADER, SALSA_TAKES, split_range
+from dancing_points_addon.representation import root_from_head, root_from_motion, to_local, to_world
+from dancing_points_addon.runtime import MODEL_FILES, OnnxNet, Synthesizer
+from dancing_points_addon.skeleton import TRACKED, bone_lengths_from_positions
+from dancing_points_addon.take import read_take, take_from_motion, write_take
+
+SCORE_FROM = 1.0  # seconds
+
+
+def test_segments(data_dir, takes=SALSA_TAKES):
+    """Per take: (name, leader 60 Hz test Motion slice, leader 30 Hz GT, follower 30 Hz GT, bone lengths)."""
+    for take in takes:
+        lead = load_amc(os.path.join(data_dir, f"{LEADER}_{take}.amc"))
+        fol = load_amc(os.path.join(data_dir, f"{FOLLOWER}_{take}.amc"))
+        a, b = split_range(lead.n_frames, "test")
+        lead60 = type(lead)(lead.positions[2 * a:], lead.rotations[2 * a:], lead.fps, lead.bone_vectors,
+                            lead.source)
+        yield {"take": take, "lead60": lead60,
+               "lead": (lead.positions[::2][a:b], lead.rotations[::2][a:b]),
+               "fol": (fol.positions[::2][a:b], fol.rotations[::2][a:b]),
+               "lead_len": lead.bone_lengths(), "fol_len": fol.bone_lengths()}
+
+
+# -- ablations -----------------------------------------------------------------
+class PastInputSynth(Synthesizer):
+    """(b) trackers fed the past three-point trajectory instead of a future one:
+    the leader its own input, the follower its own predicted past."""
+
+    HIST = int(F.TRACK_KEYS.max()) + 2
+
+    def reset(self):
+        super().reset()
+        self._lh = []  # leader (root, tracked local) per frame
+        self._fh = []
+
+    @staticmethod
+    def _past(hist, fallback):
+        n = len(hist)
+        idx = [max(n - 1 - k, 0) for k in F.TRACK_KEYS]  # frames (t - 1) - k relative to the last entry
+        if n == 0:
+            return fallback
+        return np.stack([hist[i][0] for i in idx]), np.stack([hist[i][1] for i in idx])
+
+    def _leader_keys(self, root, cur_local, l_roots, l_tr):
+        self._lh.append((root, cur_local))
+        self._lh = self._lh[-self.HIST:]
+        return self._past(self._lh[:-1] or self._lh, None)
+
+    def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
+        if not self._fh:
+            return super()._follower_keys(f_roots, f_tr, l_roots, l_tr)
+        return self._past(self._fh, None)
+
+    def step(self, positions, quats, valid=(True, True, True)):
+        a, b = super().step(positions, quats, valid)
+        s = self.scale()
+        tr = b.positions[TRACKED] * s
+        from dancing_points_addon.representation import device_rotation
+        from dancing_points_addon.skeleton import HEAD_BONE
+        root = root_from_head(tr[0], device_rotation(b.rotations[HEAD_BONE]))
+        self._fh.append((root, to_local(tr, root)))
+        self._fh = self._fh[-self.HIST:]
+        return a, b
+
+
+class LeaderTrajSynth(Synthesizer):
+    """(c) the follower tracked from the leader's predicted future trajectory
+    (no follower mapping)."""
+
+    def reset(self):
+        super().reset()
+        self._prev_lead = None
+
+    def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
+        prev = self._prev_lead if self._prev_lead is not None else (l_roots[0], l_tr[0])
+        self._prev_lead = (l_roots[0], l_tr[0])
+        return (np.concatenate([prev[0][None], l_roots[self._OFF]]),
+                np.concatenate([prev[1][None], l_tr[self._OFF]]))
+
+
+class FixedPose:
+    """(d) a fixed pose carried along under the head; the follower's at its mean
+    placement relative to the leader in the train split."""
+
+    def __init__(self, synth: Synthesizer, follower_offset):
+        self.lead_pose = synth.default_pose["leader"]
+        self.fol_pose = synth.default_pose["follower"]
+        self.offset = follower_offset
+
+    def run(self, take):
+        from dancing_points_addon.representation import rot6d_to_matrix, root_compose, rot_to_world
+        from dancing_points_addon.resample import resample_take
+        from dancing_points_addon.rotations import quat_to_matrix
+
+        tk = resample_take(take, F.FPS)
+        roots = root_from_head(tk.positions[:, 0], quat_to_matrix(tk.quats[:, 0]))
+        out = []
+        for pose, rts in ((self.lead_pose, roots), (self.fol_pose, root_compose(roots, self.offset[None]))):
+            p = pose[:93].reshape(31, 3)
+            r = rot6d_to_matrix(pose[93:93 + 186].reshape(31, 6))
+            pw = to_world(np.broadcast_to(p, (len(rts), 31, 3)), rts)
+            rw = rot_to_world(np.broadcast_to(r, (len(rts), 31, 3, 3)), rts)
+            out.append((pw, rw))
+        return out
+
+
+def mean_follower_offset(data_dir):
+    from dancing_points_addon.dataset import load_clips
+    from dancing_points_addon.representation import root_relative
+
+    clips = load_clips(data_dir, "train", mirror_aug=True)
+    rel = np.concatenate([root_relative(c.leader.roots, c.follower.roots) for c in clips])
+    m = rel.mean(0)
+    m[2:] /= np.linalg.norm(m[2:])
+    return m
+
+
+# -- scoring -------------------------------------------------------------------
+def score(runs):
+    """runs: list of dicts with pred/true leader/follower positions (T, 31, 3), mask."""
+    agg = {k: [] for k in ("track", "lead", "fol", "hand", "head_l", "head_f", "skate", "skate_gt",
+                           "jit", "jit_gt", "fskate", "fjit")}
+    counts = []
+    pred_corr, true_corr = [], []
+    for r in runs:
+        pl, pf, tl, tf, m = r["pl"], r["pf"], r["tl"], r["tf"], r["mask"]
+        agg["track"].append(M.tracking_error(pl, tl, m))
+        agg["lead"].append(M.fullbody_error(pl, tl, m))
+        agg["fol"].append(M.fullbody_error(pf, tf, m))
+        agg["hand"].append(M.hand_error(pl, pf, tl, tf, m))
+        agg["head_l"].append(M.heading_error(pl, tl, m))
+        agg["head_f"].append(M.heading_error(pf, tf, m))
+        counts.append(M.contact_counts(pl, tl, m))
+        agg["skate"].append(M.foot_skating(pl, m))
+        agg["skate_gt"].append(M.foot_skating(tl, m))
+        agg["fskate"].append(M.foot_skating(pf, m))
+        agg["jit"].append(M.jitter(pl, m))
+        agg["jit_gt"].append(M.jitter(tl, m))
+        agg["fjit"].append(M.jitter(pf, m))
+        pred_corr.append(M.circular_correlation(M.hip_heading(pl)[m], M.hip_heading(pf)[m]))
+        true_corr.append(M.circular_correlation(M.hip_heading(tl)[m], M.hip_heading(tf)[m]))
+    w = np.array([int(r["mask"].sum()) for r in runs], dtype=float)
+    cm = 100.0
+    return {
+        "leader_tracking_cm": M.aggregate(agg["track"]) * cm,
+        "leader_fullbody_cm": M.aggregate(agg["lead"]) * cm,
+        "follower_fullbody_cm": M.aggregate(agg["fol"]) * cm,
+        "hand_cm": M.aggregate(agg["hand"]) * cm,
+        "heading_leader_deg": M.aggregate(agg["head_l"]),
+        "heading_follower_deg": M.aggregate(agg["head_f"]),
+        "heading_corr": float(np.average(pred_corr, weights=w)),
+        "heading_corr_gt": float(np.average(true_corr, weights=w)),
+        "contact_f1": M.f1(counts),
+        "skating_cm_s": M.aggregate(agg["skate"]),
+        "skating_gt_cm_s": M.aggregate(agg["skate_gt"]),
+        "follower_skating_cm_s": M.aggregate(agg["fskate"]),
+        "jitter": M.aggregate(agg["jit"]),
+        "jitter_gt": M.aggregate(agg["jit_gt"]),
+        "follower_jitter": M.aggregate(agg["fjit"]),
+        "frames": int(w.sum()),
+    }
+
+
+def stability(runs):
+    """Worst leader-root distance from the input head's floor projection, NaNs,
+    worst relative bone-length deviation (bones longer than 2 cm)."""
+    worst_root, worst_len, nan = 0.0, 0.0, False
+    for r in runs:
+        for key, lens in (("pl", r["lead_len"]), ("pf", r["fol_len"])):
+            p = r[key]
+            nan |= bool(~np.isfinite(p).all())
+            bl = bone_lengths_from_positions(p)
+            sel = lens > 0.02
+            worst_len = max(worst_len, float(np.max(np.abs(bl[:, sel] / lens[sel] - 1.0))))
+        head = r["input_head"]
+        worst_root = max(worst_root, float(np.max(np.linalg.norm(
+            r["pl"][:, TRACKED[0]][:, [0, 2]] - head[:, [0, 2]], axis=-1))))
+    return {"max_root_from_head_cm": worst_root * 100, "nan": nan, "max_bone_length_dev": worst_len}
+
+
+def run_system(factory, segments, tmpdir, fixed=None):
+    runs = []
+    t0 = time.time()
+    frames = 0
+    for seg in segments:
+        path = os.path.join(tmpdir, f"lead_test_{seg['take']}.csv")
+        take = take_from_motion(seg["lead60"])
+        take.time = take.time - take.time[0]
+        write_take(path, take)
+        take = read_take(path)
+        if fixed is not None:
+            (pl, _), (pf, _) = fixed.run(take)
+        else:
+            duet = factory().synthesize(take)
+            pl, pf = duet.leader_positions, duet.follower_positions
+        tl, tf = seg["lead"][0], seg["fol"][0]
+        n = min(len(pl), len(tl))
+        mask = np.arange(n) / F.FPS >= SCORE_FROM
+        runs.append({"pl": pl[:n], "pf": pf[:n], "tl": tl[:n], "tf": tf[:n], "mask": mask,
+                     "lead_len": seg["lead_len"], "fol_len": seg["fol_len"],
+                     "input_head": tl[:n, TRACKED[0]]})
+        frames += n
+    return runs, {"seconds": time.time() - t0, "frames": frames}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m training.evaluate", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="../shared/data/cmu_salsa")
+    ap.add_argument("--models", default="models")
+    ap.add_argument("--ablations", default=None, help="folder with vanilla_*.onnx and pastinput_*.onnx")
+    ap.add_argument("--takes", default=None, help="comma list of take numbers (default: all 13)")
+    ap.add_argument("--no-foot-lock", action="store_true")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--markdown", default=None)
+    args = ap.parse_args(argv)
+
+    takes = tuple(args.takes.split(",")) if args.takes else SALSA_TAKES
+    segments = list(test_segments(args.data, takes))
+    nets = {k: OnnxNet(os.path.join(args.models, f)) for k, f in MODEL_FILES.items()}
+    lock = not args.no_foot_lock
+    systems = {"full": lambda: Synthesizer(nets=nets, foot_lock=lock)}
+    if args.ablations:
+        for tag in ("vanilla", "pastinput"):
+            paths = {r: os.path.join(args.ablations, f"{tag}_{r}.onnx") for r in ("leader", "follower")}
+            if all(os.path.exists(p) for p in paths.values()):
+                abl = dict(nets, **{r: OnnxNet(p) for r, p in paths.items()})
+                cls = PastInputSynth if tag == "pastinput" else Synthesizer
+                systems[{"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}[tag]] = \
+                    (lambda a=abl, c=cls: c(nets=a, foot_lock=lock))
+    systems["(c) follower from leader trajectory"] = lambda: LeaderTrajSynth(nets=nets, foot_lock=lock)
+    results = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, factory in systems.items():
+            runs, info = run_system(factory, segments, tmp)
+            results[name] = {**score(runs), **stability(runs), **info}
+            print(name, json.dumps({k: round(v, 3) if isinstance(v, float) else v
+                                    for k, v in results[name].items()}), flush=True)
+        fixed = FixedPose(Synthesizer(nets=nets, foot_lock=False), mean_follower_offset(args.data))
+        runs, info = run_system(None, segments, tmp, fixed=fixed)
+        results["(d) fixed pose under the head"] = {**score(runs), **stability(runs), **info}
+        print("(d)", json.dumps({k: round(v, 3) if isinstance(v, float) else v
+                                 for k, v in results["(d) fixed pose under the head"].items()}), flush=True)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+    if args.markdown:
+        with open(args.markdown, "w") as f:
+            f.write(markdown_table(results))
+    return 0
+
+
+COLUMNS = [("leader_tracking_cm", "Leader tracking (cm)"), ("leader_fullbody_cm", "Leader full-body (cm)"),
+           ("follower_fullbody_cm", "Follower full-body (cm)"), ("hand_cm", "Hand (cm)"),
+           ("heading_leader_deg", "Heading L (°)"), ("heading_follower_deg", "Heading F (°)"),
+           ("heading_corr", "Heading corr."), ("contact_f1", "Contact F1"),
+           ("skating_cm_s", "Skating L (cm/s)"), ("jitter", "Jitter L (m/s³)")]
+
+
+def markdown_table(results):
+    head = "| System | " + " | ".join(c[1] for c in COLUMNS) + " |\n"
+    head += "|---" * (len(COLUMNS) + 1) + "|\n"
+    rows = []
+    for name, r in results.items():
+        rows.append(f"| {name} | " + " | ".join(f"{r[k]:.2f}" for k, _ in COLUMNS) + " |")
+    gt = next(iter(results.values()))
+    rows.append("| ground truth | 0 | 0 | 0 | 0 | 0 | 0 | "
+                f"{gt['heading_corr_gt']:.2f} | 1 | {gt['skating_gt_cm_s']:.2f} | {gt['jitter_gt']:.2f} |")
+    return head + "\n".join(rows) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,167 @@
+"""Train the shipped networks (and optionally the ablations) from scratch.
+
+    python -m training.train --data ../shared/data/cmu_salsa --out models
+
+Trains, on the SPEC §5 train split only (mirror augmented): the mapping
+network, and one tracking network per dancer (leader, follower), then exports
+them to ONNX. ``--ablations DIR`` also trains ablation (a), a vanilla MLP
+tracker, and (b), a tracker fed the past instead of the future three-point
+trajectory, for both dancers, under the same settings, into ``DIR``.
+No validation split is carved from the test frames: training runs a fixed
+number of epochs, so test data cannot steer it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+
+import numpy as np
+import torch
+
+from dancing_points_addon import features as F
+from dancing_points_addon.dataset import load_clips
+
+from .data import mapping_samples, tracking_samples
+from .export import export
+from .model import MappingNet, TrackingNet, VanillaTracker
+
+
+def default_pose(x: np.ndarray) -> list:
+    """Pose features of the train sample nearest the mean pose (normalised): the
+    runtime's start-up pose, placed under the head."""
+    pose = x[:, :F.POSE_DIM].astype(np.float64)
+    z = (pose - pose.mean(0)) / (pose.std(0) + 1e-6)
+    return pose[int(np.argmin((z ** 2).sum(1)))].round(6).tolist()
+
+
+def save_checkpoint(model, path, meta):
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    torch.save({"state_dict": model.state_dict(), "meta": meta}, path)
+
+
+def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None, seed=0):
+    torch.manual_seed(seed)
+    xt, yt = torch.from_numpy(x), torch.from_numpy(y)
+    model.nx.fit(xt)
+    model.ny.fit(yt)
+    model.to(device)
+    xt, yt = xt.to(device), yt.to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
+    steps = max(1, epochs * math.ceil(len(xt) / batch))
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.05)
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    model.train()
+    t0 = time.time()
+    hist = []
+    for ep in range(epochs):
+        perm = torch.randperm(len(xt), generator=g).to(device)
+        tot, n = {}, 0
+        for i in range(0, len(xt) - batch + 1, batch):
+            idx = perm[i:i + batch]
+            losses = model.loss(xt[idx], yt[idx])
+            loss = sum(losses.values())
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            for k, v in losses.items():
+                tot[k] = tot.get(k, 0.0) + v.item()
+            n += 1
+        rec = {k: v / max(n, 1) for k, v in tot.items()}
+        hist.append(rec)
+        if log:
+            log(f"  epoch {ep + 1}/{epochs} " + " ".join(f"{k}={v:.4f}" for k, v in rec.items())
+                + f" ({time.time() - t0:.0f}s)")
+    model.eval()
+    return {"seconds": time.time() - t0, "final": hist[-1] if hist else {}, "epochs": epochs,
+            "samples": int(len(xt))}
+
+
+CONFIGS = {
+    # hidden units, epochs
+    "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 40},
+    "tiny": {"map_hidden": 32, "map_epochs": 1, "track_hidden": 32, "track_epochs": 1},
+}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m training.train", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="../shared/data/cmu_salsa")
+    ap.add_argument("--out", default="models")
+    ap.add_argument("--config", choices=sorted(CONFIGS), default="full")
+    ap.add_argument("--ablations", default=None, help="also train ablations (a), (b) into this folder")
+    ap.add_argument("--only", default=None,
+                    help="comma list of what to train: mapping, leader, follower (the shipped models)"
+                         " and, with --ablations, vanilla, pastinput (default: all)")
+    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: all cores)")
+    ap.add_argument("--device", default="auto", help="cpu, cuda or auto")
+    ap.add_argument("--cache", default="cache")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
+    cfg = CONFIGS[args.config]
+    os.makedirs(args.out, exist_ok=True)
+    log = lambda s: print(s, flush=True)  # noqa: E731
+    t_all = time.time()
+    clips = load_clips(args.data, "train", mirror_aug=True, cache_dir=args.cache)
+    log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
+    only = set(args.only.split(",")) if args.only else {"mapping", "leader", "follower", "vanilla", "pastinput"}
+    report = {"config": args.config, **cfg, "device": device, "models": {}}
+
+    if "mapping" in only:
+        x, y = mapping_samples(clips)
+        log(f"mapping: {x.shape} -> {y.shape}")
+        m = MappingNet(F.MAP_IN, F.MAP_OUT, cfg["map_hidden"])
+        info = train_model(m, x, y, cfg["map_epochs"], device=device, log=log, seed=args.seed)
+        export(m, "mapping", os.path.join(args.out, "mapping.onnx"), F.MAP_IN,
+               {"hidden": cfg["map_hidden"], "train": info})
+        save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": cfg["map_hidden"]})
+        report["models"]["mapping"] = info
+    for role in ("leader", "follower"):
+        x, y = tracking_samples(clips, role)
+        if role in only:
+            log(f"tracker {role}: {x.shape} -> {y.shape}")
+            m = TrackingNet(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"])
+            info = train_model(m, x, y, cfg["track_epochs"], device=device, log=log, seed=args.seed)
+            export(m, f"tracker_{role}", os.path.join(args.out, f"tracker_{role}.onnx"), F.TRACK_IN,
+                   {"hidden": cfg["track_hidden"], "role": role, "train": info,
+                    "default_pose": default_pose(x)})
+            save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"tracker_{role}.pt"),
+                            {"hidden": cfg["track_hidden"], "default_pose": default_pose(x)})
+            report["models"][f"tracker_{role}"] = info
+        if not args.ablations:
+            continue
+        os.makedirs(args.ablations, exist_ok=True)
+        if "vanilla" in only:  # ablation (a): no latent, L_rec only
+            log(f"ablation (a) vanilla MLP tracker {role}")
+            v = VanillaTracker(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"])
+            info = train_model(v, x, y, cfg["track_epochs"], device=device, log=log, seed=args.seed)
+            export(v, f"tracker_{role}", os.path.join(args.ablations, f"vanilla_{role}.onnx"), F.TRACK_IN,
+                   {"ablation": "a", "role": role, "train": info, "default_pose": default_pose(x)})
+            report["models"][f"vanilla_{role}"] = info
+        if "pastinput" in only:  # ablation (b): fed the past three points, no mapping
+            log(f"ablation (b) past-input tracker {role}")
+            xp, yp = tracking_samples(clips, role, past_input=True)
+            p = TrackingNet(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"])
+            info = train_model(p, xp, yp, cfg["track_epochs"], device=device, log=log, seed=args.seed)
+            export(p, f"tracker_{role}", os.path.join(args.ablations, f"pastinput_{role}.onnx"), F.TRACK_IN,
+                   {"ablation": "b", "role": role, "input": "past three-point trajectory", "train": info,
+                    "default_pose": default_pose(x)})
+            report["models"][f"pastinput_{role}"] = info
+    report["seconds_total"] = time.time() - t_all
+    report_dir = args.out if only & {"mapping", "leader", "follower"} else args.ablations
+    with open(os.path.join(report_dir, "training_report.json"), "w") as f:
+        json.dump(report, f, indent=1)
+    log(f"done in {report['seconds_total']:.0f}s -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
