@@ -111,7 +111,7 @@ def split_tracking_output(y: np.ndarray):
     """``(B, TRACK_OUT)`` -> rel roots ``(B,K,4)``, local positions ``(B,K,31,3)``,
     local rotations ``(B,K,31,3,3)``, contacts ``(B,K,4)``."""
     B = len(y)
-    y = y.reshape(B, len(TRACK_KEYS), KEY_OUT)
+    y = y.reshape(B, -1, KEY_OUT)  # all keys (training) or only the first (exported)
     rel = y[..., :4].copy()
     rel[..., 2:4] /= np.maximum(np.linalg.norm(rel[..., 2:4], axis=-1, keepdims=True), 1e-9)
     pos = y[..., 4:4 + 93].reshape(B, -1, N_JOINTS, 3)
