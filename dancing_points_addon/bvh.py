@@ -1,0 +1,837 @@
+"""BVH (Biovision hierarchy) motion files: parser, forward kinematics, writer.
+
+Conventions of this module
+--------------------------
+- A BVH *joint* is the start of a bone. Its rest pose is all rotations zero:
+  joint ``j`` starts at ``start(parent) + offset[j]``. Rotation channels listed
+  as ``Zrotation Xrotation Yrotation`` mean ``L = Rz · Rx · Ry`` (column
+  vectors: the last listed axis is applied first), angles in degrees. The
+  global rotation is ``G[j] = G[parent] · L[j]``; joint positions are
+  ``p[j] = p[parent] + G[parent] · t[j]``; an End Site of joint ``j`` lies at
+  ``p[j] + G[j] · offset``. So ``G`` is the rotation *relative to the BVH rest
+  pose*: a posed bone vector is ``G · rest bone vector``.
+- Position channels, on any joint and anywhere in the channel list, *replace*
+  the corresponding component of that joint's OFFSET (Blender's importer and
+  exporter do the same; most files only have them on the root, whose offset is
+  usually zero).
+- The numbers are in the file's units. :func:`unit_scale` picks a factor to
+  metres (``units='auto'``: from the rest-pose size of the skeleton, see there).
+- Up axis: BVH is normally Y up (the SPEC's motion space). Files written by
+  Blender's own exporter are in Blender's armature space, Z up. The functions
+  that produce motion-space data (:func:`tracked_points`, :func:`bvh_to_motion`)
+  take ``up='auto'``: if, in the rest pose, the head lies above the hips along
+  +Z rather than +Y, the file is taken as Z up and converted with
+  ``(x, y, z) -> (x, z, -y)`` (the inverse of the SPEC's Y-up -> Z-up map).
+- Rest pose: the global rotations are relative to the file's rest pose. For the
+  SPEC (§2) they are meaningful when that rest pose is the SPEC's: standing,
+  facing +Z, left = +X, arms out sideways (the CMU conversion's rest pose is
+  exactly the ASF rest pose; Mixamo's T-pose also faces +Z with Y up).
+
+Namings recognised (joint names may carry a ``namespace:`` prefix, matching is
+case-insensitive and ignores ``_ - . space``):
+
+- ``'cmu'``: the widely used CMU-converted naming (``skeleton.CMU_BVH_NAMES``:
+  Hips, LHipJoint, LeftUpLeg, ..., Neck1, Head, LeftShoulder, LeftArm,
+  LeftForeArm, LeftHand, LeftFingerBase, LeftHandIndex1, LThumb, ...). All 31
+  must be present. Only this naming can become a full :class:`Motion`.
+- ``'mixamo'``: Mixamo / HumanIK naming (``mixamorig:Hips``, ``Spine``,
+  ``Head``, ``LeftArm``, ``LeftForeArm``, ``LeftHand``, ...).
+- ``'generic'``: any rig with a ``Head`` joint and hand joints called e.g.
+  ``LeftHand``/``lHand``/``hand_l``/``LeftWrist``.
+
+Tracked points (SPEC §2): head = BVH joint ``Head`` (for the CMU naming the
+start of ``head`` = end of ``upperneck``); hands = end of ``lwrist`` /
+``rwrist`` = joint ``LeftFingerBase`` / ``RightFingerBase`` for the CMU naming,
+and joint ``LeftHand`` / ``RightHand`` (the wrist) for the other namings.
+"""
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from .errors import InputError
+from .rotations import euler_to_matrix, matrix_to_euler
+from .skeleton import CMU_BVH_NAMES, JOINT_NAMES, PARENTS, Motion
+
+_CHANNELS = {
+    "xposition": "Xposition", "yposition": "Yposition", "zposition": "Zposition",
+    "xrotation": "Xrotation", "yrotation": "Yrotation", "zrotation": "Zrotation",
+}
+
+#: Length units to metres. ``'cmu'`` is the CMU ASF unit (``length 0.45``:
+#: 1/0.45 inch), the unit of the popular CMU BVH conversion.
+UNIT_SCALES = {
+    "m": 1.0,
+    "cmu": 0.0254 / 0.45,
+    "inch": 0.0254,
+    "cm": 0.01,
+    "mm": 0.001,
+}
+#: Assumed body size for ``units='auto'`` (metres).
+TYPICAL_HEIGHT_M = 1.7
+
+# Y up -> motion space for a Z-up file: (x, y, z) -> (x, z, -y).
+_Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+@dataclass
+class BvhData:
+    """A parsed BVH file, numbers as in the file (file units, degrees).
+
+    Joints are in file (depth-first) order; ``parents[j] < j`` (root: -1).
+    ``channels[j]`` are canonical names (``'Xposition'``, ``'Zrotation'``, ...)
+    whose values are ``values[:, channel_start[j] + k]``.
+    ``end_parents[e]`` is the joint that End Site ``e`` belongs to.
+    """
+
+    path: str
+    names: list
+    parents: np.ndarray
+    offsets: np.ndarray  # (J, 3)
+    channels: list  # [tuple of str]
+    channel_start: np.ndarray  # (J,)
+    end_parents: np.ndarray  # (E,)
+    end_offsets: np.ndarray  # (E, 3)
+    frame_time: float  # seconds, as used (input_fps override applied)
+    values: np.ndarray  # (T, C)
+    joint_lines: list = field(default_factory=list)  # line of each ROOT/JOINT keyword
+    frames_line: int | None = None
+    warnings: list = field(default_factory=list)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.values.shape[0])
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.names)
+
+    @property
+    def fps(self) -> float:
+        """``1 / frame_time``, snapped to a whole rate when the frame time is that
+        rate rounded to 6 decimals (``0.016667`` -> 60), as exporters write it."""
+        return _snap_fps(self.frame_time)
+
+    def index(self, name: str) -> int:
+        """Index of a joint by exact name, else by normalised name (namespace,
+        case, ``_-. `` ignored). ``KeyError`` if absent."""
+        if name in self.names:
+            return self.names.index(name)
+        key = _norm(name)
+        for i, n in enumerate(self.names):
+            if _norm(n) == key:
+                return i
+        raise KeyError(name)
+
+    def children(self, j: int) -> list:
+        return [int(c) for c in np.nonzero(self.parents == j)[0]]
+
+
+class BvhPose(NamedTuple):
+    """Forward kinematics result, scaled to metres by ``scale``."""
+
+    positions: np.ndarray  # (T, J, 3) joint starts
+    rotations: np.ndarray  # (T, J, 3, 3) global, relative to the rest pose
+    end_positions: np.ndarray  # (T, E, 3)
+    scale: float
+
+
+class TrackedPoints(NamedTuple):
+    """Head, left hand, right hand (this order) over the file's frames."""
+
+    positions: np.ndarray  # (T, 3, 3) motion space, metres
+    rotations: np.ndarray  # (T, 3, 3, 3) global rotations relative to the rest pose
+    fps: float
+    naming: str  # 'cmu' | 'mixamo' | 'generic'
+    joints: tuple  # BVH joint names whose positions were used
+    scale: float  # file units -> metres used
+    up: str  # 'Y' | 'Z': the file's up axis as used
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+def _read_lines(path):
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as exc:
+        raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        text = data.decode("latin-1")
+    return text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+
+
+def _snap_fps(frame_time: float) -> float:
+    fps = 1.0 / frame_time
+    r = round(fps)
+    if r >= 1 and abs(frame_time - 1.0 / r) <= 5.01e-7:
+        return float(r)
+    return fps
+
+
+def _float(path, tok, lineno, what):
+    try:
+        v = float(tok)
+    except ValueError:
+        raise InputError(path, f"non-numeric value {tok!r} in {what}", lineno) from None
+    if not np.isfinite(v):
+        raise InputError(path, f"non-finite value {tok!r} in {what}", lineno)
+    return v
+
+
+class _Tokens:
+    """Whitespace tokens of the hierarchy section, each with its line number."""
+
+    def __init__(self, path, lines):
+        self.path = path
+        self.lines = lines
+        self.toks = []
+        for i, line in enumerate(lines, 1):
+            parts = line.split()
+            if parts and parts[0].upper() == "MOTION":
+                self.motion_line = i
+                break
+            # Braces glued to words ("JOINT Hips{", "}}") become their own tokens.
+            for p in parts:
+                for t in re.findall(r"[{}]|[^{}]+", p):
+                    self.toks.append((t, i))
+        else:
+            self.motion_line = None
+        self.pos = 0
+
+    def peek(self):
+        return self.toks[self.pos] if self.pos < len(self.toks) else (None, self.last_line)
+
+    def next(self):
+        t = self.peek()
+        self.pos += 1
+        return t
+
+    @property
+    def last_line(self):
+        if self.motion_line is not None:
+            return self.motion_line
+        n = len(self.lines)
+        while n > 1 and not self.lines[n - 1].strip():
+            n -= 1
+        return max(n, 1)
+
+
+def parse_bvh(path, input_fps: float | None = None) -> BvhData:
+    """Parse a BVH file. ``input_fps`` overrides the file's ``Frame Time``.
+
+    Rejects with :class:`InputError` (file and line): a missing HIERARCHY or
+    MOTION section, more than one ROOT, unbalanced braces, malformed OFFSET or
+    CHANNELS, a missing or malformed ``Frames:`` / ``Frame Time:`` line, a
+    frame time that is not positive (unless ``input_fps`` is given), a frame
+    row with the wrong number of values, non-numeric or non-finite values,
+    fewer frame rows than ``Frames:`` declares. More rows than declared are
+    accepted (all are used) with a note in ``BvhData.warnings``.
+    """
+    path = str(path)
+    if input_fps is not None and not (np.isfinite(input_fps) and input_fps > 0):
+        raise InputError(path, f"input frame rate must be positive, got {input_fps}")
+    lines = _read_lines(path)
+    tk = _Tokens(path, lines)
+
+    tok, ln = tk.next()
+    if tok is None or tok.upper() != "HIERARCHY":
+        raise InputError(path, "not a BVH file: it must start with HIERARCHY", ln if tok else 1)
+
+    names, parents, offsets, channels, joint_lines = [], [], [], [], []
+    end_parents, end_offsets = [], []
+
+    def read_offset(owner):
+        tok, ln = tk.next()
+        if tok is None or tok.upper() != "OFFSET":
+            raise InputError(path, f"{owner}: expected OFFSET, found {tok or 'end of hierarchy'!r}", ln)
+        vals = []
+        for _ in range(3):
+            t, l2 = tk.next()
+            if t is None or t in "{}" or l2 != ln:
+                raise InputError(path, f"{owner}: OFFSET needs 3 numbers", ln)
+            vals.append(_float(path, t, ln, "OFFSET"))
+        return vals
+
+    def read_name(kw_line, what):
+        parts = []
+        while True:
+            t, l2 = tk.peek()
+            if t is None or l2 != kw_line or t in "{}":
+                break
+            parts.append(t)
+            tk.next()
+        if not parts:
+            raise InputError(path, f"{what} without a name", kw_line)
+        return "_".join(parts)
+
+    def expect_open(owner, kw_line):
+        t, l2 = tk.next()
+        if t != "{":
+            raise InputError(path, f"{owner}: expected '{{', found {t or 'end of hierarchy'!r}", l2 if t else kw_line)
+        return l2
+
+    def read_channels(owner, l2):
+        nt, _ = tk.next()
+        try:
+            n = int(nt)
+        except (TypeError, ValueError):
+            raise InputError(path, f"{owner}: CHANNELS needs a count, found {nt!r}", l2) from None
+        if n < 0 or n > 6:
+            raise InputError(path, f"{owner}: CHANNELS count must be 0 to 6, got {n}", l2)
+        lst = []
+        for _ in range(n):
+            ct, cl = tk.peek()
+            canon = _CHANNELS.get((ct or "").lower())
+            if canon is None:
+                raise InputError(path, f"{owner}: CHANNELS declares {n} channels but lists {len(lst)}"
+                                 + (f" (unknown channel {ct!r})" if ct and ct not in "{}" and
+                                    ct.upper() not in ("JOINT", "END", "OFFSET") else ""), l2)
+            tk.next()
+            if canon in lst:
+                raise InputError(path, f"{owner}: channel {canon} listed twice", cl)
+            lst.append(canon)
+        return tuple(lst)
+
+    def parse_joint(kw_line, parent, depth=0):
+        if depth > 200:
+            raise InputError(path, "hierarchy nested more than 200 joints deep", kw_line)
+        name = read_name(kw_line, "ROOT/JOINT")
+        owner = f"joint {name!r}"
+        open_line = expect_open(owner, kw_line)
+        j = len(names)
+        names.append(name)
+        parents.append(parent)
+        joint_lines.append(kw_line)
+        offset, chans = None, None
+        while True:  # OFFSET and CHANNELS, in either order, before any child
+            t, l2 = tk.peek()
+            u = (t or "").upper()
+            if u == "OFFSET" and offset is None:
+                offset = read_offset(owner)
+            elif u == "CHANNELS" and chans is None:
+                tk.next()
+                chans = read_channels(owner, l2)
+            elif u in ("OFFSET", "CHANNELS"):
+                raise InputError(path, f"{owner}: {t} given twice", l2)
+            else:
+                break
+        if offset is None:
+            raise InputError(path, f"{owner} has no OFFSET (found {t or 'end of hierarchy'!r} "
+                             f"at line {l2})", kw_line)
+        offsets.append(offset)
+        chans = chans or ()
+        channels.append(chans)
+        while True:
+            t, l2 = tk.next()
+            if t is None:
+                raise InputError(path, f"unbalanced braces: '{{' of {owner} (line {open_line}) is never closed"
+                                 + ("" if tk.motion_line is None else " before MOTION"), open_line)
+            u = t.upper()
+            if t == "}":
+                return
+            if u == "JOINT":
+                parse_joint(l2, j, depth + 1)
+            elif u == "END":
+                s, _ = tk.next()
+                if s is None or s.upper() != "SITE":
+                    raise InputError(path, f"expected 'End Site', found 'End {s or ''}'", l2)
+                while True:  # an optional name after "End Site"
+                    t3, l3 = tk.peek()
+                    if t3 is None or l3 != l2 or t3 == "{":
+                        break
+                    tk.next()
+                eo = expect_open(f"End Site of {owner}", l2)
+                end_offsets.append(read_offset(f"End Site of {owner}"))
+                end_parents.append(j)
+                t4, l4 = tk.next()
+                if t4 != "}":
+                    raise InputError(path, f"unbalanced braces: End Site of {owner} (line {eo}) "
+                                     f"must close after its OFFSET, found {t4 or 'end of hierarchy'!r}",
+                                     l4 if t4 else eo)
+            elif u == "ROOT":
+                raise InputError(path, "several roots: ROOT inside a joint", l2)
+            elif u in ("OFFSET", "CHANNELS"):
+                raise InputError(path, f"{owner}: {t} must come first in the joint, before JOINT/End Site", l2)
+            else:
+                raise InputError(path, f"{owner}: unexpected {t!r} in the hierarchy", l2)
+
+    root_seen = False
+    while True:
+        tok, ln = tk.next()
+        if tok is None:
+            break
+        u = tok.upper()
+        if u == "ROOT":
+            if root_seen:
+                raise InputError(path, "several roots: a second ROOT (only one skeleton per file is supported)", ln)
+            root_seen = True
+            parse_joint(ln, -1)
+        elif tok == "}":
+            raise InputError(path, "unbalanced braces: '}' without a matching '{'", ln)
+        elif tok == "{":
+            raise InputError(path, "unbalanced braces: '{' outside any joint", ln)
+        else:
+            raise InputError(path, f"unexpected {tok!r} in the hierarchy", ln)
+    if not root_seen:
+        raise InputError(path, "no ROOT joint in the HIERARCHY", tk.last_line)
+    if tk.motion_line is None:
+        raise InputError(path, "no MOTION section after the hierarchy", tk.last_line)
+
+    # ----------------------------------------------------------------- MOTION
+    i = tk.motion_line  # 0-based index of the line after MOTION
+    after = lines[i - 1].split()[1:]
+    if after:
+        raise InputError(path, f"unexpected {' '.join(after)!r} after MOTION", i)
+
+    def next_line(i, what):
+        start = i
+        while i < len(lines) and not lines[i].strip():
+            i += 1
+        if i >= len(lines):
+            raise InputError(path, f"missing '{what}' line in MOTION (end of file)", start)
+        return i
+
+    i = next_line(i, "Frames:")
+    m = re.match(r"^\s*frames\s*:\s*(\S+)\s*$", lines[i], re.IGNORECASE)
+    if not m:
+        raise InputError(path, f"expected 'Frames: N', found {lines[i].strip()[:40]!r}", i + 1)
+    frames_line = i + 1
+    try:
+        n_declared = int(m.group(1))
+    except ValueError:
+        raise InputError(path, f"frame count must be a whole number, found {m.group(1)!r}", frames_line) from None
+    if n_declared < 1:
+        raise InputError(path, f"no frames (Frames: {n_declared})", frames_line)
+    i = next_line(i + 1, "Frame Time:")
+    m = re.match(r"^\s*frame\s*time\s*:\s*(\S+)\s*$", lines[i], re.IGNORECASE)
+    if not m:
+        raise InputError(path, f"expected 'Frame Time: SECONDS', found {lines[i].strip()[:40]!r}", i + 1)
+    ft_line = i + 1
+    try:
+        frame_time = float(m.group(1))
+    except ValueError:
+        raise InputError(path, f"non-numeric frame time {m.group(1)!r}", ft_line) from None
+    if input_fps is not None:
+        frame_time = 1.0 / float(input_fps)
+    elif not np.isfinite(frame_time) or frame_time <= 0:
+        raise InputError(path, f"frame time must be positive, got {m.group(1)} (override with --input-fps)",
+                         ft_line)
+
+    n_ch = sum(len(c) for c in channels)
+    row_lines, tokens = [], []
+    for k in range(i + 1, len(lines)):
+        parts = lines[k].split()
+        if not parts:
+            continue
+        if len(parts) != n_ch:
+            raise InputError(path, f"frame {len(row_lines) + 1} has {len(parts)} values, expected {n_ch} "
+                             "(one per channel)", k + 1)
+        row_lines.append(k + 1)
+        tokens.extend(parts)
+    n_rows = len(row_lines)
+    warnings = []
+    if n_rows < n_declared:
+        raise InputError(path, f"Frames: declares {n_declared} frames but only {n_rows} frame rows follow "
+                         "(truncated file?)", frames_line)
+    if n_rows > n_declared:
+        warnings.append(f"Frames: declares {n_declared} frames but {n_rows} rows follow; all rows are used")
+    try:
+        values = np.array(tokens, dtype=np.float64).reshape(n_rows, n_ch)
+    except ValueError:
+        for r, lnum in enumerate(row_lines):
+            for t in lines[lnum - 1].split():
+                _float(path, t, lnum, f"frame {r + 1}")
+        raise  # pragma: no cover (the loop above always finds the culprit)
+    if not np.all(np.isfinite(values)):
+        r = int(np.argwhere(~np.isfinite(values))[0, 0])
+        raise InputError(path, f"non-finite value in frame {r + 1}", row_lines[r])
+
+    starts = np.concatenate([[0], np.cumsum([len(c) for c in channels])[:-1]]).astype(np.int64)
+    return BvhData(
+        path=path, names=names, parents=np.asarray(parents, dtype=np.int64),
+        offsets=np.asarray(offsets, dtype=np.float64).reshape(-1, 3), channels=channels,
+        channel_start=starts, end_parents=np.asarray(end_parents, dtype=np.int64),
+        end_offsets=np.asarray(end_offsets, dtype=np.float64).reshape(-1, 3),
+        frame_time=float(frame_time), values=values, joint_lines=joint_lines,
+        frames_line=frames_line, warnings=warnings)
+
+
+# --------------------------------------------------------------------------- kinematics
+
+
+def joint_local(data: BvhData, j: int, scale: float = 1.0):
+    """Local translation ``(T, 3)`` (× ``scale``) and rotation ``(T, 3, 3)`` of joint ``j``."""
+    T = data.n_frames
+    trans = np.broadcast_to(data.offsets[j] * scale, (T, 3)).copy()
+    c0 = int(data.channel_start[j])
+    axes, cols = [], []
+    for k, ch in enumerate(data.channels[j]):
+        col = data.values[:, c0 + k]
+        if ch.endswith("position"):
+            trans[:, "XYZ".index(ch[0])] = col * scale
+        else:
+            axes.append(ch[0])
+            cols.append(col)
+    if axes:
+        # Listed order c1 c2 c3 means R = R_c1 · R_c2 · R_c3: c3 is applied first.
+        rot = euler_to_matrix(np.deg2rad(np.stack(cols[::-1], axis=-1)), "".join(axes[::-1]))
+    else:
+        rot = np.broadcast_to(np.eye(3), (T, 3, 3)).copy()
+    return trans, rot
+
+
+def _fk_joints(data: BvhData, scale: float, needed):
+    """``{j: (position (T, 3), global rotation (T, 3, 3))}`` for ``needed`` and their ancestors."""
+    keep = set()
+    for j in needed:
+        while j >= 0 and j not in keep:
+            keep.add(j)
+            j = int(data.parents[j])
+    out = {}
+    for j in sorted(keep):  # parents come before children
+        t, r = joint_local(data, j, scale)
+        p = int(data.parents[j])
+        if p < 0:
+            out[j] = (t, r)
+        else:
+            pp, pg = out[p]
+            out[j] = (pp + np.einsum("tab,tb->ta", pg, t), pg @ r)
+    return out
+
+
+def fk(data: BvhData, scale: float = 1.0) -> BvhPose:
+    """Forward kinematics in file axes, lengths × ``scale``: every joint and End Site."""
+    T, J = data.n_frames, data.n_joints
+    res = _fk_joints(data, scale, range(J))
+    pos = np.empty((T, J, 3))
+    glob = np.empty((T, J, 3, 3))
+    for j, (p, g) in res.items():
+        pos[:, j], glob[:, j] = p, g
+    ends = pos[:, data.end_parents] + np.einsum("teab,eb->tea", glob[:, data.end_parents],
+                                                 data.end_offsets * scale)
+    return BvhPose(pos, glob, ends, float(scale))
+
+
+def rest_positions(data: BvhData, scale: float = 1.0):
+    """Rest-pose (all channels zero, offsets only) joint starts ``(J, 3)`` and
+    End Site positions ``(E, 3)``, lengths × ``scale``."""
+    pos = np.zeros((data.n_joints, 3))
+    for j in range(data.n_joints):
+        p = data.parents[j]
+        pos[j] = data.offsets[j] * scale + (pos[p] if p >= 0 else 0.0)
+    ends = pos[data.end_parents] + data.end_offsets * scale
+    return pos, ends
+
+
+def rest_height(data: BvhData) -> float:
+    """Largest extent (file units) of the rest-pose skeleton along any axis."""
+    pos, ends = rest_positions(data)
+    pts = np.concatenate([pos, ends])
+    return float(np.max(pts.max(0) - pts.min(0))) if len(pts) else 0.0
+
+
+def unit_scale(data: BvhData, units="auto") -> float:
+    """Factor from the file's length unit to metres.
+
+    ``units``: a number (used as is), one of :data:`UNIT_SCALES` (``'m'``,
+    ``'cm'``, ``'mm'``, ``'inch'``, ``'cmu'``), or ``'auto'``: the unit that
+    makes the rest-pose skeleton's largest extent (:func:`rest_height`; head
+    to toe, or the arm span of a T-pose) closest to 1.7 m on a log scale. That
+    is metres below 7.2 units, CMU units (×0.0254/0.45) to 45, inches to 107,
+    centimetres to 540, millimetres above.
+    """
+    if isinstance(units, (int, float, np.floating)) and not isinstance(units, bool):
+        if not (np.isfinite(units) and units > 0):
+            raise ValueError(f"scale must be positive, got {units}")
+        return float(units)
+    if units != "auto":
+        try:
+            return UNIT_SCALES[str(units).lower()]
+        except KeyError:
+            raise ValueError(f"unknown units {units!r}; use 'auto', a number or one of "
+                             f"{', '.join(UNIT_SCALES)}") from None
+    h = rest_height(data)
+    if not h > 0:
+        return 1.0
+    return min(UNIT_SCALES.values(), key=lambda s: abs(np.log(h * s / TYPICAL_HEIGHT_M)))
+
+
+# --------------------------------------------------------------------------- naming
+
+
+def _norm(name: str) -> str:
+    base = re.split(r"[:|]", name)[-1]
+    return re.sub(r"[\s_\-.]", "", base).lower()
+
+
+_MIXAMO_CORE = ("hips", "spine", "head", "leftarm", "rightarm", "leftforearm", "rightforearm",
+                "lefthand", "righthand")
+_ALIASES = {
+    "head": ("head",),
+    "lhand": ("lefthand", "lhand", "handl", "handleft", "leftwrist", "lwrist", "wristl"),
+    "rhand": ("righthand", "rhand", "handr", "handright", "rightwrist", "rwrist", "wristr"),
+}
+
+
+def _index_by_norm(data: BvhData) -> dict:
+    out = {}
+    for i, n in enumerate(data.names):
+        out.setdefault(_norm(n), i)
+    return out
+
+
+def detect_naming(data: BvhData):
+    """``'cmu'``, ``'mixamo'``, ``'generic'`` (head and hands found) or ``None``."""
+    idx = _index_by_norm(data)
+    if all(_norm(v) in idx for v in CMU_BVH_NAMES.values()):
+        return "cmu"
+    if all(k in idx for k in _MIXAMO_CORE):
+        return "mixamo"
+    if all(any(a in idx for a in al) for al in _ALIASES.values()):
+        return "generic"
+    return None
+
+
+def _tracked_joints(data: BvhData, naming: str):
+    """Indices (position joints, rotation joints) for head, lhand, rhand."""
+    idx = _index_by_norm(data)
+    if naming == "cmu":
+        pos = [idx[_norm(CMU_BVH_NAMES[n])] for n in ("head", "lhand", "rhand")]
+        rot = [idx[_norm(CMU_BVH_NAMES[n])] for n in ("head", "lwrist", "rwrist")]
+        return pos, rot
+    found = [next(idx[a] for a in _ALIASES[k] if a in idx) for k in ("head", "lhand", "rhand")]
+    return found, found
+
+
+def _up_matrix(data: BvhData, up, head_joint: int | None):
+    """(3x3 matrix file -> motion space, 'Y' | 'Z')."""
+    if up == "auto":
+        up = "Y"
+        if head_joint is not None:
+            pos, _ = rest_positions(data)
+            d = pos[head_joint] - pos[0]
+            if abs(d[2]) > abs(d[1]) and d[2] > 0:
+                up = "Z"
+    up = str(up).upper()
+    if up == "Y":
+        return np.eye(3), "Y"
+    if up == "Z":
+        return _Z_UP_TO_Y_UP, "Z"
+    raise ValueError(f"up must be 'auto', 'Y' or 'Z', got {up!r}")
+
+
+def _naming_error(data: BvhData):
+    return InputError(
+        data.path,
+        "cannot find the head and hand joints: expected the CMU-converted naming (Hips, Neck1, Head, "
+        "LeftHand, LeftFingerBase, ...) or the Mixamo naming (mixamorig:Head, mixamorig:LeftHand, ...)",
+        data.joint_lines[0] if data.joint_lines else None)
+
+
+def tracked_points(data: BvhData, scale: float | None = None, units="auto", up="auto") -> TrackedPoints:
+    """The SPEC §2 tracked points (head, left hand, right hand) for any
+    recognised naming, in motion space (metres, Y up).
+
+    Rotations are global rotations relative to the file's rest pose: the
+    ``Head`` joint (the skull) and the ``LeftHand``/``RightHand`` joints (for
+    the CMU naming, the ``lwrist``/``rwrist`` bones that end at the points). The
+    SPEC head device orientation is ``rotations[:, 0] @ Ry(180°)`` when the rest
+    pose faces +Z (composed by the take builder, not here).
+    """
+    naming = detect_naming(data)
+    if naming is None:
+        raise _naming_error(data)
+    pj, rj = _tracked_joints(data, naming)
+    s = unit_scale(data, units if scale is None else scale)
+    m, up_used = _up_matrix(data, up, pj[0])
+    res = _fk_joints(data, s, pj + rj)
+    pos = np.stack([res[j][0] for j in pj], axis=1) @ m.T
+    rot = m @ np.stack([res[j][1] for j in rj], axis=1) @ m.T
+    return TrackedPoints(pos, rot, data.fps, naming, tuple(data.names[i] for i in pj), s, up_used)
+
+
+def head_bone_rotation(data: BvhData, up="auto") -> np.ndarray:
+    """``(T, 3, 3)`` global rotation of the ``Head`` joint (the skull), motion
+    space, relative to the rest pose. The SPEC head device is this ``@ Ry(180°)``."""
+    naming = detect_naming(data)
+    if naming is None:
+        raise _naming_error(data)
+    pj, _ = _tracked_joints(data, naming)
+    m, _ = _up_matrix(data, up, pj[0])
+    return m @ _fk_joints(data, 1.0, [pj[0]])[pj[0]][1] @ m.T
+
+
+def bvh_to_motion(data: BvhData, scale: float | None = None, units="auto", up="auto") -> Motion:
+    """A CMU-named BVH as a SPEC §2 :class:`Motion` (metres, motion space).
+
+    Joint position of bone ``n`` = the BVH joint that is the child of
+    ``CMU_BVH_NAMES[n]`` (or its End Site for a leaf); root = ``Hips``. Global
+    rotation of bone ``n`` = that of joint ``CMU_BVH_NAMES[n]`` (relative to the
+    BVH rest pose, which for the CMU conversion is the ASF rest pose). Bone
+    vectors are the rest offsets of those children (root: zero).
+    """
+    if detect_naming(data) != "cmu":
+        idx = _index_by_norm(data)
+        missing = [v for v in CMU_BVH_NAMES.values() if _norm(v) not in idx]
+        raise InputError(data.path, "not a CMU-skeleton BVH (missing joints " + ", ".join(missing[:6])
+                         + (", ..." if len(missing) > 6 else "") + "); only its tracked points can be used",
+                         data.joint_lines[0] if data.joint_lines else None)
+    idx = _index_by_norm(data)
+    bj = np.array([idx[_norm(CMU_BVH_NAMES[n])] for n in JOINT_NAMES])
+    for n in range(1, len(JOINT_NAMES)):
+        if data.parents[bj[n]] != bj[PARENTS[n]]:
+            raise InputError(data.path, f"joint {data.names[bj[n]]!r} should be a child of "
+                             f"{data.names[bj[PARENTS[n]]]!r} (CMU skeleton)", data.joint_lines[bj[n]])
+    s = unit_scale(data, units if scale is None else scale)
+    m, up_used = _up_matrix(data, up, int(bj[JOINT_NAMES.index("head")]))
+    pose = fk(data, s)
+    T = data.n_frames
+    positions = np.empty((T, len(JOINT_NAMES), 3))
+    vectors = np.zeros((len(JOINT_NAMES), 3))
+    positions[:, 0] = pose.positions[:, bj[0]]
+    for n in range(1, len(JOINT_NAMES)):
+        kids = np.nonzero(PARENTS == n)[0]
+        if len(kids):
+            c = bj[kids[0]]
+            positions[:, n] = pose.positions[:, c]
+            vectors[n] = data.offsets[c] * s
+        else:
+            ends = np.nonzero(data.end_parents == bj[n])[0]
+            if not len(ends):
+                raise InputError(data.path, f"leaf joint {data.names[bj[n]]!r} has no End Site",
+                                 data.joint_lines[bj[n]])
+            positions[:, n] = pose.end_positions[:, ends[0]]
+            vectors[n] = data.end_offsets[ends[0]] * s
+    rotations = m @ pose.rotations[:, bj] @ m.T
+    return Motion(positions @ m.T, rotations, data.fps, vectors @ m.T, data.path,
+                  {"bvh_scale": s, "bvh_up": up_used, "naming": "cmu"})
+
+
+def load_bvh(path, input_fps: float | None = None, scale: float | None = None, units="auto",
+             up="auto") -> Motion:
+    """``bvh_to_motion(parse_bvh(path, input_fps), ...)``."""
+    return bvh_to_motion(parse_bvh(path, input_fps), scale=scale, units=units, up=up)
+
+
+# --------------------------------------------------------------------------- writing
+
+_WRITE_ORDER = "ZXY"  # channel order written: Zrotation Xrotation Yrotation (R = Rz·Rx·Ry)
+
+
+def _names_list(names):
+    if isinstance(names, dict):
+        return [names[n] for n in JOINT_NAMES]
+    names = list(names)
+    if len(names) != len(JOINT_NAMES):
+        raise ValueError(f"need {len(JOINT_NAMES)} joint names, got {len(names)}")
+    return names
+
+
+def bvh_text(motion: Motion, names=CMU_BVH_NAMES) -> str:
+    """The BVH text :func:`write_bvh` writes (metres, Y up, rest = ASF rest pose)."""
+    names = _names_list(names)
+    pos = np.asarray(motion.positions, dtype=np.float64)
+    rot = np.asarray(motion.rotations, dtype=np.float64)
+    vec = np.asarray(motion.bone_vectors, dtype=np.float64)
+    J = len(JOINT_NAMES)
+    if pos.ndim != 3 or pos.shape[1:] != (J, 3) or rot.shape != pos.shape[:2] + (3, 3) or vec.shape != (J, 3):
+        raise ValueError("motion must have positions (T, 31, 3), rotations (T, 31, 3, 3), bone_vectors (31, 3)")
+    if not (np.all(np.isfinite(pos[:, 0])) and np.all(np.isfinite(rot)) and np.all(np.isfinite(vec))):
+        raise ValueError("motion has non-finite values")
+    if not (np.isfinite(motion.fps) and motion.fps > 0):
+        raise ValueError(f"fps must be positive, got {motion.fps}")
+    T = pos.shape[0]
+    local = rot.copy()
+    local[:, 1:] = np.swapaxes(rot[:, PARENTS[1:]], -1, -2) @ rot[:, 1:]
+    # R = Rz·Rx·Ry = euler_to_matrix((y, x, z), "YXZ"); write in listed order Z X Y.
+    ang = np.rad2deg(matrix_to_euler(local, _WRITE_ORDER[::-1])[..., ::-1])
+    ang = np.unwrap(ang, period=360.0, axis=0)
+
+    children = [[c for c in range(J) if PARENTS[c] == n] for n in range(J)]
+    out = ["HIERARCHY"]
+    order = []
+    rot_ch = " ".join(f"{a}rotation" for a in _WRITE_ORDER)
+
+    def f3(v):
+        return " ".join(f"{x:.8f}" for x in (v + 0.0))
+
+    def emit(n, depth):
+        ind = "\t" * depth
+        out.append(f"{ind}{'ROOT' if n == 0 else 'JOINT'} {names[n]}")
+        out.append(f"{ind}{{")
+        off = np.zeros(3) if n == 0 else vec[PARENTS[n]]
+        out.append(f"{ind}\tOFFSET {f3(off)}")
+        if n == 0:
+            out.append(f"{ind}\tCHANNELS 6 Xposition Yposition Zposition {rot_ch}")
+        else:
+            out.append(f"{ind}\tCHANNELS 3 {rot_ch}")
+        order.append(n)
+        for c in children[n]:
+            emit(c, depth + 1)
+        if not children[n]:
+            out.append(f"{ind}\tEnd Site")
+            out.append(f"{ind}\t{{")
+            out.append(f"{ind}\t\tOFFSET {f3(vec[n])}")
+            out.append(f"{ind}\t}}")
+        out.append(f"{ind}}}")
+
+    emit(0, 0)
+    out.append("MOTION")
+    out.append(f"Frames: {T}")
+    out.append(f"Frame Time: {1.0 / float(motion.fps):.10f}")
+    cols = [pos[:, 0]] + [ang[:, n] for n in order]
+    table = np.concatenate(cols, axis=1) + 0.0  # + 0.0: no "-0.000000"
+    fmt = " ".join(["%.8f"] * 3 + ["%.6f"] * (table.shape[1] - 3))
+    body = "\n".join(fmt % tuple(row) for row in table)
+    return "\n".join(out) + "\n" + body + "\n"
+
+
+def write_bvh(path, motion: Motion, names=CMU_BVH_NAMES):
+    """Write ``motion`` as a BVH on the CMU skeleton; returns ``path``.
+
+    One BVH joint per ASF bone, named by ``names`` (a SPEC-bone -> name dict or
+    31 names in SPEC order); rest pose = the ASF rest pose (OFFSET of a joint =
+    its parent's rest bone vector, root offset 0); End Sites at the ends of the
+    leaf bones. ``Hips`` has ``Xposition Yposition Zposition Zrotation Xrotation
+    Yrotation`` (the root translation), the others ``Zrotation Xrotation
+    Yrotation``. Metres, Y up (Blender's importer at scale 1.0 gives metres),
+    ``Frame Time = 1/fps``. Only the root position, the global rotations and
+    the bone vectors are written: the other joint positions follow by FK.
+    Written atomically (a temporary file beside ``path``, then renamed).
+    """
+    text = bvh_text(motion, names)
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp", dir=folder)
+    except OSError as exc:
+        raise InputError(path, f"cannot write file ({exc.strerror or exc})") from None
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise InputError(path, f"cannot write file ({exc.strerror or exc})") from None
+        raise
+    return path
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
