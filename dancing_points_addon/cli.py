@@ -102,9 +102,68 @@ def _parser_extract(sub) -> None:
     p.set_defaults(func=cmd_extract)
 
 
+# --------------------------------------------------------------------------- synthesize
+
+def cmd_synthesize(args) -> int:
+    import time
+
+    from .runtime import Synthesizer, duet_motions, save_npz
+
+    out = args.output
+    check_output_path(out)
+    base, ext = os.path.splitext(out)
+    ext = ext.lower()
+    if ext not in (".npz", ".bvh"):
+        raise InputError(out, "output must end in .npz or .bvh")
+    take = load_input_from_args(args)
+    t0 = time.perf_counter()
+    synth = Synthesizer(model_dir=args.models, threads=args.threads, height=args.height or take.height,
+                        foot_lock=not args.no_foot_lock, hand_ik=args.hand_ik)
+    duet = synth.synthesize(take)
+    if ext == ".npz":
+        save_npz(duet, out)
+        written = [out]
+    else:
+        from .bvh import bvh_text
+        from .take import atomic_output
+
+        written = []
+        try:
+            for role, motion in duet_motions(duet, synth.bone_vectors).items():
+                path = f"{base}_{role}.bvh"
+                existed = os.path.exists(path)
+                with atomic_output(path, "w", newline="\n") as f:
+                    f.write(bvh_text(motion))
+                if not existed:
+                    written.append(path)
+        except BaseException:
+            for path in written:  # never leave one dancer without the other
+                os.remove(path)
+            raise
+        written = [f"{base}_{r}.bvh" for r in ("leader", "follower")]
+    dt = time.perf_counter() - t0
+    print(f"wrote {', '.join(written)}: {duet.n_frames} frames at 30 Hz, "
+          f"{duet.n_frames / 30.0:.1f} s of duet in {dt:.2f} s")
+    return EXIT_OK
+
+
+def _parser_synthesize(sub) -> None:
+    p = sub.add_parser("synthesize", help="three-point take (or full-body motion) -> leader + follower duet",
+                       description="Synthesise both dancers' full-body motion at 30 Hz from the leader's "
+                                   "three points. OUT.npz: SPEC §4 arrays; OUT.bvh: writes OUT_leader.bvh "
+                                   "and OUT_follower.bvh on the CMU skeleton (Y up, metres).")
+    add_input_arguments(p)
+    p.add_argument("-o", "--output", required=True, metavar="OUT.npz|OUT.bvh", help="output file")
+    p.add_argument("--threads", type=int, default=1, metavar="N", help="onnxruntime threads (default 1)")
+    p.add_argument("--models", default=None, metavar="DIR", help="folder with the ONNX models")
+    p.add_argument("--no-foot-lock", action="store_true", help="turn contact-based foot locking off")
+    p.add_argument("--hand-ik", action="store_true", help="put the leader's head and wrists on the input")
+    p.set_defaults(func=cmd_synthesize)
+
+
 # --------------------------------------------------------------------------- main
 
-PARSERS = [_parser_extract]
+PARSERS = [_parser_extract, _parser_synthesize]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import features as F
-from .representation import (device_rotation, root_compose, root_from_head, rot_to_local,
-                             rot_to_world, to_local, to_world)
+from .pose import bone_vectors_from_pose, recover_pose
+from .representation import root_compose, root_from_head, rot6d_to_matrix, rot_to_world, to_local, to_world
 from .rotations import quat_to_matrix
 from .skeleton import JOINT_NAMES, TRACKED
 
@@ -128,6 +128,10 @@ class Synthesizer:
         self.foot_lock = foot_lock
         self.hand_ik = hand_ik
         self.default_pose = {r: self._default_pose(nets[r]) for r in ("leader", "follower")}
+        # Each dancer's rest skeleton, from its (FK-consistent) default pose.
+        self.bone_vectors = {r: bone_vectors_from_pose(p[:93].reshape(31, 3),
+                                                       rot6d_to_matrix(p[93:279].reshape(31, 6)))
+                             for r, p in self.default_pose.items()}
         self.reset()
 
     @staticmethod
@@ -186,7 +190,7 @@ class Synthesizer:
             elif self.hand_local is not None:
                 hands[i - 1] = to_world(self.hand_local[i - 1][None], root)[0]
             else:
-                d = self.default_pose[("leader")][:93].reshape(31, 3)[TRACKED[i]]
+                d = self.default_pose["leader"][:93].reshape(31, 3)[TRACKED[i]]
                 hands[i - 1] = to_world(d[None], root)[0]
         self.last_valid = (head_pos, head_rot)
         self.hand_local = to_local(hands, root)
@@ -223,6 +227,8 @@ class Synthesizer:
         self.prev_follower = (f_roots[0], f_tr[0])
         lp, lr, lc = self.leader.advance(lk_roots, lk_tr)
         fp, fr, fc = self.follower.advance(fk_roots, fk_tr)
+        lp, lr = recover_pose(lp, lr, self.bone_vectors["leader"])
+        fp, fr = recover_pose(fp, fr, self.bone_vectors["follower"])
         if self._lockers is not None:
             lp, lr = self._lockers[0].step(lp, lr, lc)
             fp, fr = self._lockers[1].step(fp, fr, fc)
@@ -267,17 +273,18 @@ class Synthesizer:
         return Duet(tk.time, out["lp"], out["lr"], out["lc"], out["fp"], out["fr"], out["fc"])
 
 
-def save_npz(duet: Duet, path: str):
-    """Write a duet (SPEC §4) atomically."""
-    path = str(path)
-    tmp = os.path.join(os.path.dirname(os.path.abspath(path)), f".{os.path.basename(path)}.tmp.npz")
-    try:
-        np.savez_compressed(tmp, **duet.arrays())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+def save_npz(duet: Duet, path) -> None:
+    """Write a duet (SPEC §4) atomically: nothing is left at ``path`` on failure."""
+    from .take import atomic_output
+
+    with atomic_output(path, "wb") as f:
+        np.savez_compressed(f, **duet.arrays())
 
 
-def head_device_rotation(head_bone_rotation):
-    return device_rotation(head_bone_rotation)
+def duet_motions(duet: Duet, bone_vectors: dict):
+    """The two dancers as SPEC :class:`~.skeleton.Motion` clips (for BVH export)."""
+    from .skeleton import Motion
+
+    return {role: Motion(getattr(duet, f"{role}_positions"), getattr(duet, f"{role}_rotations"), duet.fps,
+                         bone_vectors[role], source=role)
+            for role in ("leader", "follower")}

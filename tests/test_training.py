@@ -1,0 +1,67 @@
+"""Training side: a tiny configuration trains, exports ONNX, and onnxruntime agrees
+with PyTorch; the training samples never reach a test frame."""
+import json
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from dancing_points_addon import features as F
+from dancing_points_addon.dataset import build_clips, split_range
+from training import train as T
+from training.data import mapping_samples, tracking_samples
+from training.export import export, mapping_keep, tracker_keep
+from training.model import MappingNet, TrackingNet, VanillaTracker
+
+
+@pytest.fixture(scope="module")
+def clips(salsa_dir):
+    return build_clips(salsa_dir, "train", mirror_aug=True)
+
+
+@pytest.mark.parametrize("kind", ["mapping", "tracker", "vanilla"])
+def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
+    torch.manual_seed(0)
+    if kind == "mapping":
+        x, y = mapping_samples(clips[:2])
+        model, n_in, keep, name = MappingNet(F.MAP_IN, F.MAP_OUT, 32), F.MAP_IN, mapping_keep(), "mapping"
+    else:
+        x, y = tracking_samples(clips[:2], "leader")
+        cls = TrackingNet if kind == "tracker" else VanillaTracker
+        model, n_in, keep, name = cls(F.TRACK_IN, F.TRACK_OUT, 32), F.TRACK_IN, tracker_keep(), "tracker_leader"
+    info = T.train_model(model, x[:512], y[:512], epochs=2, batch=64)
+    assert np.isfinite(info["final"]["rec"])
+    path = str(tmp_path / f"{name}.onnx")
+    export(model, name, path, n_in, {"default_pose": T.default_pose(x)} if kind != "mapping" else None)
+    m = onnx.load(path)
+    onnx.checker.check_model(m)
+    assert m.opset_import[0].version >= 17
+    meta = {p.key: p.value for p in m.metadata_props}
+    assert json.loads(meta["layout"])["track_in"] == F.TRACK_IN
+    assert "git_commit" in meta and "data_split" in meta and len(json.loads(meta["skeleton"])) == 31
+    sess = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
+    xb = x[:16]
+    got = sess.run(None, {"x": xb})[0]
+    with torch.no_grad():
+        want = model(torch.from_numpy(xb)).numpy()[:, keep]
+    assert got.shape == want.shape
+    err = np.abs(got - want).max()
+    print(f"\n{kind}: onnxruntime vs torch max |diff| = {err:.2e}")
+    assert err < 1e-4
+
+
+def test_training_samples_stay_inside_train_frames(salsa_dir, clips):
+    """Every sample's future window ends inside its clip, and each clip holds exactly
+    the train frames of its take, so no test frame reaches training or normalisation."""
+    for c in clips:
+        n = c.n_frames
+        take = c.name[:2]
+        n60 = {"01": 2242, "02": 2101, "03": 1830, "04": 1871, "05": 1678, "06": 1772, "07": 2071,
+               "08": 3421, "09": 2575, "10": 1197, "11": 2108, "12": 1690, "13": 2271}[take]
+        assert n == split_range(n60, "train")[1]
+    x, y = mapping_samples(clips)
+    assert len(x) == sum(c.n_frames - F.FUTURE for c in clips)
+    xt, yt = tracking_samples(clips, "follower")
+    assert len(xt) == len(x) and xt.shape[1] == F.TRACK_IN and yt.shape[1] == F.TRACK_OUT
