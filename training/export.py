@@ -38,8 +38,7 @@ def tracker_keep() -> np.ndarray:
 
 
 def mapping_keep() -> np.ndarray:
-    frames = F.TRACK_KEYS - 1
-    return (frames[:, None] * 26 + np.arange(26)[None, :]).reshape(-1)
+    return np.arange(F.MAP_OUT)  # all 30 future frames: the runtime picks its keys
 
 
 def git_commit() -> str:
@@ -66,7 +65,7 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
         "fps": str(F.FPS),
         "past_frames": str(F.PAST),
         "future_frames": str(F.FUTURE),
-        "output_keys": json.dumps([1] if kind.startswith("tracker") else F.TRACK_KEYS.tolist()),
+        "output_keys": json.dumps([1] if kind.startswith("tracker") else list(range(1, F.FUTURE + 1))),
         "skeleton": json.dumps(list(JOINT_NAMES)),
         "data_split": "CMU salsa takes 01-13 at 30 Hz, frames [0, floor(0.8*n30)) of each take (SPEC §5); "
                       "mirror augmented",
