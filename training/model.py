@@ -63,20 +63,27 @@ class MappingNet(nn.Module):
 class TrackingNet(nn.Module):
     """Codebook matching with a continuous latent (paper §4.2).
 
-    Training: encoder E([x, y]) -> z_e, decoder D(z_e) -> y (L_rec), estimator
-    S(x) -> z_s with L_matching = |z_e − z_s|². Inference: D(S(x)).
+    Training: encoder E([x, y]) -> z_e, decoder D(z_e, x) -> y (L_rec), estimator
+    S(x) -> z_s with L_matching = |z_e − z_s|². Inference: D(S(x), x).
     The latent is ``channels × width`` with a softmax over each channel.
+    ``condition_decoder``: the decoder also sees the (normalised) input, so the
+    latent carries what the input leaves open instead of the whole pose.
     """
 
-    def __init__(self, n_in, n_out, hidden, layers=6, channels=16, width=32, noise=0.1):
+    def __init__(self, n_in, n_out, hidden, layers=6, channels=16, width=32, noise=0.1,
+                 condition_decoder=True):
         super().__init__()
         self.nx, self.ny = Normalizer(n_in), Normalizer(n_out)
         self.channels, self.width = channels, width
         z = channels * width
         self.estimator = mlp(n_in, z, hidden, layers)
         self.encoder = mlp(n_in + n_out, z, hidden, layers)
-        self.decoder = mlp(z, n_out, hidden, layers)
+        self.condition = condition_decoder
+        self.decoder = mlp(z + (n_in if condition_decoder else 0), n_out, hidden, layers)
         self.noise = noise
+
+    def _decode(self, z, xn):
+        return self.decoder(torch.cat([z, xn], dim=-1) if self.condition else z)
 
     def _latent(self, h):
         return torch.softmax(h.view(-1, self.channels, self.width), dim=-1).view(-1, self.channels * self.width)
@@ -87,12 +94,13 @@ class TrackingNet(nn.Module):
             xn = xn + self.noise * torch.randn_like(xn)
         z_e = self._latent(self.encoder(torch.cat([xn, yn], dim=-1)))
         z_s = self._latent(self.estimator(xn))
-        rec = ((self.decoder(z_e) - yn) ** 2).mean()
+        rec = ((self._decode(z_e, xn) - yn) ** 2).mean()
         match = ((z_e - z_s) ** 2).sum(-1).mean()
         return {"rec": rec, "match": match}
 
     def forward(self, x):
-        return self.ny.denorm(self.decoder(self._latent(self.estimator(self.nx.norm(x)))))
+        xn = self.nx.norm(x)
+        return self.ny.denorm(self._decode(self._latent(self.estimator(xn)), xn))
 
 
 class VanillaTracker(nn.Module):

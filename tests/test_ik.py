@@ -1,0 +1,366 @@
+"""Two-bone IK, foot locking and end-effector IK (dancing_points_addon.ik) on real salsa data."""
+import time
+
+import numpy as np
+import pytest
+
+from dancing_points_addon import metrics
+from dancing_points_addon.asf_amc import load_amc
+from dancing_points_addon.ik import EndEffectorIK, FootLocker, _two_bone_s, rotation_between, two_bone_ik
+from dancing_points_addon.representation import contact_labels, floor_levels
+from dancing_points_addon.skeleton import (FEET, JOINT_INDEX, JOINT_NAMES, PARENTS, TRACKED,
+                                           bone_lengths_from_positions)
+
+J = JOINT_INDEX
+LEG_BONES = [J[s + n] for s in "lr" for n in ("femur", "tibia", "foot", "toes")]
+
+
+@pytest.fixture(scope="module")
+def take(salsa_dir):
+    m = load_amc(salsa_dir / "60_01.amc").subsample(2)  # 30 Hz
+    T = 600
+    return m.positions[:T].copy(), m.rotations[:T].copy(), m.bone_vectors
+
+
+def _smooth_drift(rng, T, amplitude=0.03, sigma=1.0):
+    """Noisy, smooth horizontal drift (T, 3), |x|, |z| <= amplitude."""
+    x = rng.normal(size=(T + 60, 2))
+    k = np.exp(-0.5 * (np.arange(-30, 31) / sigma) ** 2)
+    y = np.stack([np.convolve(x[:, i], k, "same") for i in range(2)], 1)[30:30 + T]
+    y = y / np.abs(y).max() * amplitude
+    return np.stack([y[:, 0], np.zeros(T), y[:, 1]], 1)
+
+
+def _angle_between(a, b):
+    c = np.sum(a * b, -1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+# ---------------------------------------------------------------------------
+# two-bone IK
+
+
+def test_two_bone_ik_lengths_reach_plane_and_rotations():
+    rng = np.random.default_rng(0)
+    n = 2000
+    hip = rng.normal(size=(n, 3))
+    knee = hip + rng.normal(size=(n, 3))
+    ankle = knee + rng.normal(size=(n, 3))
+    target = hip + rng.normal(size=(n, 3)) * 1.5
+    pole = hip + rng.normal(size=(n, 3))
+    k2, a2, R1, R2 = two_bone_ik(hip, knee, ankle, target, pole)
+    l1 = np.linalg.norm(knee - hip, axis=-1)
+    l2 = np.linalg.norm(ankle - knee, axis=-1)
+    assert np.abs(np.linalg.norm(k2 - hip, axis=-1) - l1).max() < 1e-9
+    assert np.abs(np.linalg.norm(a2 - k2, axis=-1) - l2).max() < 1e-9
+    d = np.linalg.norm(target - hip, axis=-1)
+    reach = (d < l1 + l2) & (d > np.abs(l1 - l2))
+    assert 0.3 < reach.mean() < 0.95
+    assert np.linalg.norm(a2 - target, axis=-1)[reach].max() < 1e-9
+    # out of reach: on the ray hip -> target, as far/near as the chain allows
+    far = d >= l1 + l2
+    u = (target - hip) / d[:, None]
+    assert np.abs(np.linalg.norm(a2 - hip, axis=-1) - np.clip(d, np.abs(l1 - l2), l1 + l2)).max() < 1e-9
+    assert np.linalg.norm(np.cross(a2 - hip, u), axis=-1)[far].max() < 1e-9
+    # knee in the plane of (hip, target, pole)
+    nrm = np.cross(target - hip, pole - hip)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    assert np.abs(np.sum(nrm * (k2 - hip), -1)).max() < 1e-9
+    # ... on the pole's side
+    perp = lambda v: v - np.sum(v * u, -1, keepdims=True) * u
+    side = np.sum(perp(k2 - hip) * perp(pole - hip), -1)
+    assert np.all(side[reach] > -1e-12)
+    # rotations: proper, and they take old directions to new ones
+    for R in (R1, R2):
+        assert np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max() < 1e-9
+        assert np.abs(np.linalg.det(R) - 1).max() < 1e-9
+    assert np.abs(np.einsum("nij,nj->ni", R1, knee - hip) - (k2 - hip)).max() < 1e-9
+    assert np.abs(np.einsum("nij,nj->ni", R2, ankle - knee) - (a2 - k2)).max() < 1e-9
+    # the scalar kernel used by the streaming solvers agrees
+    for i in range(50):
+        ks, as_, R1s, R2s = _two_bone_s(hip[i], knee[i], ankle[i], target[i], pole[i])
+        assert np.allclose(ks, k2[i], atol=1e-12) and np.allclose(as_, a2[i], atol=1e-12)
+        assert np.allclose(np.reshape(R1s, (3, 3)), R1[i], atol=1e-9)
+        assert np.allclose(np.reshape(R2s, (3, 3)), R2[i], atol=1e-9)
+
+
+def test_two_bone_ik_keeps_a_solved_chain_and_handles_degenerate_poles():
+    hip = np.zeros(3)
+    knee = np.array([0.0, -0.4, 0.05])
+    ankle = np.array([0.0, -0.8, 0.0])
+    k2, a2, R1, R2 = two_bone_ik(hip, knee, ankle, ankle)  # target = current ankle
+    assert np.allclose(k2, knee) and np.allclose(a2, ankle)
+    assert np.allclose(R1, np.eye(3)) and np.allclose(R2, np.eye(3))
+    # pole on the hip-target line: falls back to the old knee's side
+    k2, a2, _, _ = two_bone_ik(hip, knee, ankle, [0, -0.7, 0], pole=[0, -0.35, 0])
+    assert k2[2] > 0.05 and np.isclose(np.linalg.norm(a2 - [0, -0.7, 0]), 0)
+    # opposite directions: a half turn, still a rotation
+    R = rotation_between([1.0, 0, 0], [-1.0, 0, 0])
+    assert np.allclose(R @ [1.0, 0, 0], [-1, 0, 0]) and np.isclose(np.linalg.det(R), 1)
+
+
+# ---------------------------------------------------------------------------
+# foot locking
+
+
+def _run_locker(locker, P, R, C):
+    outP, outR = np.empty_like(P), np.empty_like(R)
+    locks = []
+    for t in range(len(P)):
+        outP[t], outR[t] = locker.step(P[t], R[t], C[t])
+        locks.append(locker.locks)
+    return outP, outR, locks
+
+
+def test_foot_locker_on_a_salsa_take(take):
+    gt, rot, bv = take
+    T = len(gt)
+    floor = floor_levels(gt[:, FEET, 1])
+    contacts = contact_labels(gt, 30.0, floor).astype(np.float64)
+    rng = np.random.default_rng(0)
+    pert = gt.copy()
+    for s in "lr":  # noisy horizontal sliding of each leg below the hip (±3 cm)
+        d = _smooth_drift(rng, T)
+        for n in ("femur", "tibia", "foot", "toes"):
+            pert[:, J[s + n]] += d
+    mask = np.ones(T, bool)
+    skate = lambda p: (lambda s, c: s / c)(*metrics.foot_skating(p, mask, floor))
+
+    out, outR, locks = _run_locker(FootLocker(), pert, rot, contacts)
+
+    sk_gt, sk_in, sk_out = skate(gt), skate(pert), skate(out)
+    # skating restricted to pairs where the ground truth says "contact"
+    feet_v = lambda p: np.linalg.norm(np.diff(p[:, FEET][..., [0, 2]], axis=0), axis=-1) * 3000.0
+    cpair = (contacts[1:] > 0.5) & (contacts[:-1] > 0.5)
+    c_in, c_out = feet_v(pert)[cpair].mean(), feet_v(out)[cpair].mean()
+    print(f"\nfoot skating (cm/s, SPEC metric): ground truth {sk_gt:.2f}, perturbed input {sk_in:.2f}, "
+          f"foot-locked {sk_out:.2f} (ratio {sk_out / sk_in:.3f}); on ground-truth contact pairs: "
+          f"input {c_in:.2f}, locked {c_out:.2f}")
+    # the SPEC metric also counts fast, low foot motion that is no contact (the
+    # ground truth itself skates ~20 cm/s on this take): the locker must remove
+    # at least half of what the perturbation added, and nearly all sliding on contacts
+    assert sk_out - sk_gt <= 0.5 * (sk_in - sk_gt)
+    assert sk_out <= sk_gt
+    assert c_out <= 0.1 * c_in
+
+    # bone lengths of the input positions are kept (legs included)
+    Lin, Lout = bone_lengths_from_positions(pert), bone_lengths_from_positions(out)
+    assert np.abs(Lout - Lin).max() < 1e-3
+    assert np.abs(Lout - Lin)[:, LEG_BONES].max() < 1e-9
+
+    # no pops: nothing moves much farther per frame than in the input
+    jin = np.linalg.norm(np.diff(pert, axis=0), axis=-1)
+    jout = np.linalg.norm(np.diff(out, axis=0), axis=-1)
+    dcorr = np.linalg.norm(np.diff(out - pert, axis=0), axis=-1)
+    print(f"max per-frame jump: input {jin.max() * 100:.1f} cm, output {jout.max() * 100:.1f} cm; "
+          f"max extra jump {(jout - jin).max() * 100:.1f} cm; max per-frame change of the correction "
+          f"{dcorr.max() * 100:.1f} cm")
+    assert jout.max() <= jin.max() + 1e-9
+    assert (jout - jin).max() < 0.08
+    assert dcorr.max() < 0.10
+
+    # ankles sit on their lock points while locked (when the leg can reach them)
+    errs, reachable = [], []
+    for t in range(T):
+        for side, (la, _) in enumerate(locks[t]):
+            if la is None:
+                continue
+            hip, knee, ankle = (pert[t, J[("l", "r")[side] + n]] for n in ("hipjoint", "femur", "tibia"))
+            reach = np.linalg.norm(knee - hip) + np.linalg.norm(ankle - knee)
+            errs.append(np.linalg.norm(out[t, FEET[2 * side]] - la))
+            reachable.append(np.linalg.norm(np.asarray(la) - hip) < reach - 1e-6)
+    errs, reachable = np.array(errs), np.array(reachable)
+    print(f"ankle-locked frames {len(errs)}: within 1 mm {np.mean(errs < 1e-3):.1%}, reachable "
+          f"{reachable.mean():.1%}, max error when reachable {errs[reachable].max():.2e} m, "
+          f"overall max {errs.max() * 100:.2f} cm")
+    assert len(errs) > 200
+    assert errs[reachable].max() < 1e-6
+    assert np.mean(errs < 1e-3) > 0.9
+
+    # rotations stay rotations and agree with the positions as well as the input's did
+    assert np.abs(outR @ np.swapaxes(outR, -1, -2) - np.eye(3)).max() < 1e-9
+    starts = lambda p: p[:, np.maximum(PARENTS, 0)]
+    for b in LEG_BONES:
+        a_in = _angle_between(pert[:, b] - starts(pert)[:, b], rot[:, b] @ bv[b])
+        a_out = _angle_between(out[:, b] - starts(out)[:, b], outR[:, b] @ bv[b])
+        assert np.abs(a_out - a_in).max() < 1e-6, JOINT_NAMES[b]
+    untouched = [i for i in range(31) if i not in LEG_BONES]
+    assert np.array_equal(out[:, untouched], pert[:, untouched])
+    assert np.array_equal(outR[:, untouched], rot[:, untouched])
+
+
+def test_foot_locker_is_causal_and_resets(take):
+    gt, rot, _ = take
+    C = contact_labels(gt[:200], 30.0).astype(float)
+    locker = FootLocker()
+    a, ar, _ = _run_locker(locker, gt[:200], rot[:200], C)
+    locker.reset()
+    b, br, _ = _run_locker(locker, gt[:120], rot[:120], C[:120])  # a prefix gives the same frames
+    assert np.array_equal(a[:120], b) and np.array_equal(ar[:120], br)
+    # no contact: the prediction passes through untouched
+    c, cr, _ = _run_locker(FootLocker(), gt[:50], rot[:50], np.zeros((50, 4)))
+    assert np.array_equal(c, gt[:50]) and np.array_equal(cr, rot[:50])
+
+
+def test_foot_locker_floor_snap(take):
+    gt, rot, _ = take
+    P, R = gt[:300], rot[:300]
+    floor = floor_levels(gt[:, FEET, 1])
+    C = contact_labels(gt, 30.0, floor)[:300].astype(float)
+    out, _, locks = _run_locker(FootLocker(floor=floor), P, R, C)
+    seen = 0
+    for t in range(1, len(P)):
+        for side in (0, 1):
+            for k, lock in enumerate(locks[t][side]):
+                if lock is not None and locks[t - 1][side][k] is not lock:  # engaged at t
+                    # snapped down to the floor level, never raised above the point's current
+                    # output height (the output blends from there onto the lock)
+                    assert lock[1] <= floor[2 * side + k] + 1e-12
+                    assert lock[1] <= out[t, FEET[2 * side + k], 1] + 1e-3
+                    seen += 1
+    assert seen > 10
+    dcorr = np.linalg.norm(np.diff(out - P, axis=0), axis=-1)
+    assert dcorr.max() < 0.10
+
+
+def test_foot_locker_release_blends_back_to_the_prediction(take):
+    gt, rot, _ = take
+    T, N = 40, 6
+    P = gt[:T].copy()
+    P[:, [J["ltibia"], J["lfoot"], J["ltoes"]]] += np.linspace(0, 0.08, T)[:, None, None] * [1.0, 0, 0]
+    C = np.zeros((T, 4))
+    C[:20, 0] = 0.9  # left ankle in contact for 20 frames, then released
+    C[20:, 0] = 0.5  # between the thresholds: hysteresis keeps the lock
+    C[25:, 0] = 0.1
+    out, _, locks = _run_locker(FootLocker(blend_frames=N), P, rot[:T], C)
+    ankle = J["ltibia"]
+    assert all(locks[t][0][0] is not None for t in range(25))
+    assert np.allclose(out[:25, ankle], out[0, ankle], atol=1e-6)  # locked
+    assert locks[25][0][0] is None
+    assert np.linalg.norm(out[25 + N - 1, ankle] - P[25 + N - 1, ankle]) > 1e-4  # still blending
+    assert np.array_equal(out[25 + N:], P[25 + N:])  # then back on the prediction
+    step = np.linalg.norm(np.diff(out[:, ankle], axis=0), axis=-1)
+    assert step.max() < 0.04  # a 7 cm offset released over 6 frames, no pop
+
+
+def test_foot_locker_step_time(take):
+    gt, rot, _ = take
+    locker = FootLocker()
+    c1 = np.ones(4)
+    for t in range(5):
+        locker.step(gt[100 + t], rot[100 + t], c1)
+    n = 1000
+    t0 = time.perf_counter()
+    for _ in range(n):
+        locker.step(gt[105], rot[105], c1)
+    us = (time.perf_counter() - t0) / n * 1e6
+    free = FootLocker()
+    t0 = time.perf_counter()
+    for _ in range(n):
+        free.step(gt[105], rot[105], np.zeros(4))
+    us_free = (time.perf_counter() - t0) / n * 1e6
+    print(f"\nFootLocker.step: {us:.1f} µs with both feet locked, {us_free:.1f} µs free")
+    assert us < 1000  # generous: a shared CI machine; the target is < 40 µs
+
+
+# ---------------------------------------------------------------------------
+# end-effector IK
+
+
+def _subtree(root):
+    out = [root]
+    for c in range(31):
+        if PARENTS[c] in out and c not in out:
+            out.append(c)
+    return out
+
+
+def _rot(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _perturb_upper_body(rng, P, R):
+    """Turn the upper arms, forearms and neck of a real pose by up to ~20°."""
+    P, R = P.copy(), R.copy()
+    for bone, amp in [(s + b, a) for s in "lr" for b, a in (("humerus", 0.35), ("radius", 0.4))] + [("lowerneck", 0.3)]:
+        D = _rot(rng.normal(size=3), rng.uniform(-amp, amp))
+        sub = _subtree(J[bone])
+        piv = P[PARENTS[J[bone]]]
+        P[sub] = (P[sub] - piv) @ D.T + piv
+        R[sub] = D @ R[sub]
+    return P, R
+
+
+@pytest.mark.parametrize("lean", [0.0, 0.5])
+def test_end_effector_ik_hits_the_tracked_points(take, lean):
+    gt, rot, bv = take
+    rng = np.random.default_rng(1)
+    ee = EndEffectorIK(lean=lean)
+    spine = [J["lowerback"], J["upperback"], J["thorax"]]
+    before, after = [], []
+    for f in range(0, 600, 12):
+        P, R = _perturb_upper_body(rng, gt[f], rot[f])
+        target = gt[f, TRACKED] + rng.normal(size=(3, 3)) * 0.01  # the tracked points, ±1 cm
+        out, outR = ee.step(P, R, target)
+        before.append(np.linalg.norm(P[TRACKED] - target, axis=-1))
+        after.append(np.linalg.norm(out[TRACKED] - target, axis=-1))
+        L0 = bone_lengths_from_positions(P[None])[0]
+        L1 = bone_lengths_from_positions(out[None])[0]
+        dl = np.abs(L1 - L0)
+        assert dl[spine].max() <= ee.max_stretch / 3 + 1e-9
+        dl[spine] = 0
+        assert dl.max() < 1e-9
+        # rotations stay consistent with the positions as far as they were
+        st_in, st_out = P[np.maximum(PARENTS, 0)], out[np.maximum(PARENTS, 0)]
+        a_in = _angle_between(P[1:] - st_in[1:], np.einsum("nab,nb->na", R[1:], bv[1:]))
+        a_out = _angle_between(out[1:] - st_out[1:], np.einsum("nab,nb->na", outR[1:], bv[1:]))
+        assert np.abs(a_out - a_in).max() < 1e-6
+        assert np.allclose(outR[J["head"]], R[J["head"]])  # the head keeps its measured orientation
+        assert np.array_equal(out[:11], P[:11])  # root and legs untouched
+    before, after = np.array(before), np.array(after)
+    print(f"\nEndEffectorIK(lean={lean}): tracked-point error {before.mean() * 100:.2f} cm before, "
+          f"{after.mean() * 100:.2e} cm after (max {after.max() * 1000:.2e} mm)")
+    assert before.mean() > 0.03
+    assert after.max() < 1e-6
+
+
+def test_end_effector_ik_reach_and_lost_tracking(take):
+    gt, rot, _ = take
+    P, R = gt[300], rot[300]
+    ee = EndEffectorIK()
+    # a wrist target 8 cm beyond the straight arm: the clavicle helps
+    sh, wr = P[J["lclavicle"]], P[J["lwrist"]]
+    arm = (np.linalg.norm(P[J["lhumerus"]] - sh) + np.linalg.norm(wr - P[J["lhumerus"]]))
+    far = sh + (wr - sh) / np.linalg.norm(wr - sh) * (arm + 0.08)
+    target = np.stack([P[TRACKED[0]], far, P[TRACKED[2]]])
+    out, _ = ee.step(P, R, target)
+    assert np.linalg.norm(out[J["lwrist"]] - far) < 1e-6
+    L0 = bone_lengths_from_positions(P[None])[0]
+    assert np.abs(bone_lengths_from_positions(out[None])[0] - L0).max() < 1e-9
+    # far out of reach: as close as possible, lengths kept, nothing explodes
+    target[1] = sh + np.array([3.0, 0, 0])
+    out, outR = ee.step(P, R, target)
+    assert np.all(np.isfinite(out)) and np.abs(bone_lengths_from_positions(out[None])[0] - L0).max() < 1e-9
+    # lost tracking (NaN): that chain is left alone
+    target = P[TRACKED] + 0.05
+    target[2] = np.nan
+    out, outR = ee.step(P, R, target)
+    rarm = _subtree(J["rhumerus"])
+    assert np.allclose(out[rarm] - out[J["rclavicle"]], P[rarm] - P[J["rclavicle"]])
+    assert np.linalg.norm(out[J["lwrist"]] - target[1]) < 1e-6
+
+
+def test_end_effector_ik_step_time(take):
+    gt, rot, _ = take
+    ee = EndEffectorIK()
+    P, R = gt[100], rot[100]
+    target = P[TRACKED] + 0.02
+    n = 1000
+    t0 = time.perf_counter()
+    for _ in range(n):
+        ee.step(P, R, target)
+    us = (time.perf_counter() - t0) / n * 1e6
+    print(f"\nEndEffectorIK.step: {us:.1f} µs")
+    assert us < 2000
