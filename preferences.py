@@ -2,7 +2,7 @@
 """Add-on preferences of the Dancing Points extension."""
 
 import bpy
-from bpy.props import IntProperty
+from bpy.props import IntProperty, StringProperty
 
 # For an extension ``__package__`` is the root package ("bl_ext.<repo>.dancing_points"),
 # which is the key Blender uses for the add-on's preferences.
@@ -19,10 +19,18 @@ class DancingPointsPreferences(bpy.types.AddonPreferences):
         min=1,
         max=64,
     )
+    model_dir: StringProperty(
+        name="Model Folder",
+        description="Folder with the synthesis networks (mapping.onnx, tracker_leader.onnx, "
+                    "tracker_follower.onnx); empty: the models bundled with the extension",
+        subtype='DIR_PATH',
+        default="",
+    )
 
     def draw(self, context):
         layout = self.layout
         layout.prop(self, "onnx_threads")
+        layout.prop(self, "model_dir")
 
 
 def get_preferences(context=None):

@@ -1,12 +1,29 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """Operators of the extension (``bpy.ops.dancing_points.*``, SPEC §8).
 
-The import and synthesis operators are added here later; every operator class
-goes into ``classes`` so that ``register``/``unregister`` pick it up.
+Thin translators between Blender and the bpy-free core (``dancing_points_addon``):
+
+- ``dancing_points.import_take`` (``take_io``): a take (.csv), BVH, FBX or CMU
+  AMC file -> a take collection with three keyframed empties; File > Import
+  menu entry and drag-and-drop (FileHandler).
+- ``dancing_points.synthesize`` (``synthesize``): the active take -> a baked
+  duet (``bake``): leader and follower armatures with skinned bodies.
+- ``dancing_points.render_preview`` (``render``): Workbench render of the range.
+
+``props`` holds the data stored in the .blend, ``compat`` the Blender-version
+shims (legacy vs slotted actions, bulk keyframe I/O).
 """
 
-import bpy
+from . import props, take_io, synthesize, render
 
-classes = ()
+_modules = (props, take_io, synthesize, render)
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+
+def register():
+    for module in _modules:
+        module.register()
+
+
+def unregister():
+    for module in reversed(_modules):
+        module.unregister()

@@ -30,11 +30,90 @@ class VIEW3D_PT_dancing_points(bpy.types.Panel):
     bl_category = "Dancing Points"
 
     def draw(self, context):
+        # Labels only: the controls are in the sub-panels below.
         layout = self.layout
         layout.label(text="Version " + addon_version())
         layout.label(text="Import a take: File > Import > Dancing Points take")
 
 
-classes = (VIEW3D_PT_dancing_points,)
+class _SubPanel:
+    bl_space_type = 'VIEW_3D'
+    bl_region_type = 'UI'
+    bl_category = "Dancing Points"
+    bl_parent_id = "VIEW3D_PT_dancing_points"
+
+
+def _active_take(context):
+    from ..operators.props import active_take
+    return active_take(context)
+
+
+class VIEW3D_PT_dancing_points_take(_SubPanel, bpy.types.Panel):
+    bl_idname = "VIEW3D_PT_dancing_points_take"
+    bl_label = "Take"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        settings = getattr(context.scene, "dancing_points", None)
+        layout.operator("dancing_points.import_take", text="Import Take...", icon='IMPORT')
+        if settings is None:
+            return
+        layout.prop(settings, "take")
+        take = _active_take(context)
+        if take is None:
+            layout.label(text="No active take", icon='INFO')
+            return
+        s = take.dancing_points
+        col = layout.column(align=True)
+        col.label(text=take.name, icon='OUTLINER_COLLECTION')
+        col.label(text="{:d} frames at {:g} fps from frame {:d}".format(s.n_frames, s.fps, s.frame_start))
+        layout.prop(s, "height")
+
+
+class VIEW3D_PT_dancing_points_synthesis(_SubPanel, bpy.types.Panel):
+    bl_idname = "VIEW3D_PT_dancing_points_synthesis"
+    bl_label = "Synthesis"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        settings = getattr(context.scene, "dancing_points", None)
+        if settings is None:
+            return
+        layout.prop(settings, "foot_lock")
+        layout.prop(settings, "hand_ik")
+        row = layout.row()
+        row.enabled = _active_take(context) is not None
+        op = row.operator("dancing_points.synthesize", text="Synthesise Duet", icon='ARMATURE_DATA')
+        op.foot_lock = settings.foot_lock
+        op.hand_ik = settings.hand_ik
+
+
+class VIEW3D_PT_dancing_points_preview(_SubPanel, bpy.types.Panel):
+    bl_idname = "VIEW3D_PT_dancing_points_preview"
+    bl_label = "Preview"
+    bl_options = {'DEFAULT_CLOSED'}
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        settings = getattr(context.scene, "dancing_points", None)
+        if settings is None:
+            return
+        layout.prop(settings, "preview_path")
+        layout.prop(settings, "preview_format")
+        row = layout.row()
+        row.enabled = context.scene.camera is not None
+        op = row.operator("dancing_points.render_preview", text="Render Preview", icon='RENDER_ANIMATION')
+        op.filepath = settings.preview_path
+        op.file_format = settings.preview_format
+
+
+classes = (VIEW3D_PT_dancing_points, VIEW3D_PT_dancing_points_take,
+           VIEW3D_PT_dancing_points_synthesis, VIEW3D_PT_dancing_points_preview)
 
 register, unregister = bpy.utils.register_classes_factory(classes)

@@ -30,7 +30,7 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     else:
         x, y = tracking_samples(clips[:2], "leader")
         cls = TrackingNet if kind == "tracker" else VanillaTracker
-        model, n_in, keep, name = cls(F.TRACK_IN, F.TRACK_OUT, 32), F.TRACK_IN, tracker_keep(), "tracker_leader"
+        model, n_in, keep, name = cls(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM), F.TRACK_IN, tracker_keep(), "tracker_leader"
     info = T.train_model(model, x[:512], y[:512], epochs=2, batch=64)
     assert np.isfinite(info["final"]["rec"])
     path = str(tmp_path / f"{name}.onnx")

@@ -1,9 +1,13 @@
 """The networks (paper Appendix A), in PyTorch.
 
 All networks are MLPs of ``layers`` Linear layers with ELU between them and
-dropout 0.1 before each Linear. Inputs and outputs are normalised with train
+dropout 0.1 before each Linear; white noise N(0, 0.1) is added to the
+normalised input while training. Inputs and outputs are normalised with train
 split statistics held as buffers, so an exported model maps raw features to
 raw features.
+
+Trackers (``pose_dim`` set) predict the residual to the "nothing moves"
+prediction: the root unchanged and the current pose at every future key.
 """
 from __future__ import annotations
 
@@ -21,6 +25,14 @@ def mlp(n_in: int, n_out: int, hidden: int, layers: int = 6, dropout: float = 0.
             mods.append(nn.ELU())
         d = hidden
     return nn.Sequential(*mods)
+
+
+def pose_base(x: torch.Tensor, n_out: int, pose_dim: int) -> torch.Tensor:
+    """Root unchanged ``(0, 0, 1, 0)`` and the current pose (the first ``pose_dim``
+    input features, laid out like a key's pose block) at every future key."""
+    b = x.shape[0]
+    key = torch.cat([x.new_tensor([0.0, 0.0, 1.0, 0.0]).expand(b, 4), x[:, :pose_dim]], dim=1)
+    return key.repeat(1, n_out // (pose_dim + 4))
 
 
 class Normalizer(nn.Module):
@@ -41,82 +53,89 @@ class Normalizer(nn.Module):
         return x * self.std + self.mean
 
 
-class MappingNet(nn.Module):
+class _Net(nn.Module):
+    """Normalisation, optional residual target, input noise; subclasses define
+    ``_loss(xn, yn)`` and ``_predict(xn)`` in normalised space."""
+
+    def __init__(self, n_in, n_out, noise=0.1, pose_dim=None):
+        super().__init__()
+        self.nx, self.ny = Normalizer(n_in), Normalizer(n_out)
+        self.n_out = n_out
+        self.noise = noise
+        self.pose_dim = pose_dim
+
+    def _base(self, x):
+        return pose_base(x, self.n_out, self.pose_dim) if self.pose_dim else 0.0
+
+    def fit_normalizers(self, x, y):
+        self.nx.fit(x)
+        self.ny.fit(y - self._base(x))
+
+    def loss(self, x, y):
+        xn, yn = self.nx.norm(x), self.ny.norm(y - self._base(x))
+        if self.training and self.noise > 0:
+            xn = xn + self.noise * torch.randn_like(xn)
+        return self._loss(xn, yn)
+
+    def forward(self, x):
+        return self.ny.denorm(self._predict(self.nx.norm(x))) + self._base(x)
+
+
+class MappingNet(_Net):
     """Leader's past 0.5 s of three points -> both dancers' future 1 s."""
 
     def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1):
-        super().__init__()
-        self.nx, self.ny = Normalizer(n_in), Normalizer(n_out)
+        super().__init__(n_in, n_out, noise)
         self.net = mlp(n_in, n_out, hidden, layers)
-        self.noise = noise
 
-    def loss(self, x, y):
-        xn = self.nx.norm(x)
-        if self.training and self.noise > 0:
-            xn = xn + self.noise * torch.randn_like(xn)
-        return {"rec": ((self.net(xn) - self.ny.norm(y)) ** 2).mean()}
+    def _loss(self, xn, yn):
+        return {"rec": ((self.net(xn) - yn) ** 2).mean()}
 
-    def forward(self, x):
-        return self.ny.denorm(self.net(self.nx.norm(x)))
+    def _predict(self, xn):
+        return self.net(xn)
 
 
-class TrackingNet(nn.Module):
+class TrackingNet(_Net):
     """Codebook matching with a continuous latent (paper §4.2).
 
     Training: encoder E([x, y]) -> z_e, decoder D(z_e, x) -> y (L_rec), estimator
-    S(x) -> z_s with L_matching = |z_e − z_s|². Inference: D(S(x), x).
-    The latent is ``channels × width`` with a softmax over each channel.
-    ``condition_decoder``: the decoder also sees the (normalised) input, so the
-    latent carries what the input leaves open instead of the whole pose.
+    S(x) -> z_s with L_matching = |z_e − z_s|². Inference: D(S(x), x): an MLP.
+    The latent is ``channels × width`` with a softmax over each channel. The
+    decoder also sees the input, so the latent carries what the input leaves
+    open rather than the whole pose.
     """
 
-    def __init__(self, n_in, n_out, hidden, layers=6, channels=16, width=32, noise=0.1,
-                 condition_decoder=True):
-        super().__init__()
-        self.nx, self.ny = Normalizer(n_in), Normalizer(n_out)
+    def __init__(self, n_in, n_out, hidden, layers=6, channels=16, width=32, noise=0.1, pose_dim=None):
+        super().__init__(n_in, n_out, noise, pose_dim)
         self.channels, self.width = channels, width
         z = channels * width
         self.estimator = mlp(n_in, z, hidden, layers)
         self.encoder = mlp(n_in + n_out, z, hidden, layers)
-        self.condition = condition_decoder
-        self.decoder = mlp(z + (n_in if condition_decoder else 0), n_out, hidden, layers)
-        self.noise = noise
-
-    def _decode(self, z, xn):
-        return self.decoder(torch.cat([z, xn], dim=-1) if self.condition else z)
+        self.decoder = mlp(z + n_in, n_out, hidden, layers)
 
     def _latent(self, h):
         return torch.softmax(h.view(-1, self.channels, self.width), dim=-1).view(-1, self.channels * self.width)
 
-    def loss(self, x, y):
-        xn, yn = self.nx.norm(x), self.ny.norm(y)
-        if self.training and self.noise > 0:
-            xn = xn + self.noise * torch.randn_like(xn)
+    def _loss(self, xn, yn):
         z_e = self._latent(self.encoder(torch.cat([xn, yn], dim=-1)))
         z_s = self._latent(self.estimator(xn))
-        rec = ((self._decode(z_e, xn) - yn) ** 2).mean()
+        rec = ((self.decoder(torch.cat([z_e, xn], dim=-1)) - yn) ** 2).mean()
         match = ((z_e - z_s) ** 2).sum(-1).mean()
         return {"rec": rec, "match": match}
 
-    def forward(self, x):
-        xn = self.nx.norm(x)
-        return self.ny.denorm(self._decode(self._latent(self.estimator(xn)), xn))
+    def _predict(self, xn):
+        return self.decoder(torch.cat([self._latent(self.estimator(xn)), xn], dim=-1))
 
 
-class VanillaTracker(nn.Module):
+class VanillaTracker(_Net):
     """Ablation (a): encoder and decoder stacked as one MLP, no latent, L_rec only."""
 
-    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1):
-        super().__init__()
-        self.nx, self.ny = Normalizer(n_in), Normalizer(n_out)
+    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, pose_dim=None):
+        super().__init__(n_in, n_out, noise, pose_dim)
         self.net = nn.Sequential(mlp(n_in, hidden, hidden, layers), nn.ELU(), mlp(hidden, n_out, hidden, layers))
-        self.noise = noise
 
-    def loss(self, x, y):
-        xn = self.nx.norm(x)
-        if self.training and self.noise > 0:
-            xn = xn + self.noise * torch.randn_like(xn)
-        return {"rec": ((self.net(xn) - self.ny.norm(y)) ** 2).mean()}
+    def _loss(self, xn, yn):
+        return {"rec": ((self.net(xn) - yn) ** 2).mean()}
 
-    def forward(self, x):
-        return self.ny.denorm(self.net(self.nx.norm(x)))
+    def _predict(self, xn):
+        return self.net(xn)

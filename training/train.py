@@ -45,8 +45,7 @@ def save_checkpoint(model, path, meta):
 def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None, seed=0):
     torch.manual_seed(seed)
     xt, yt = torch.from_numpy(x), torch.from_numpy(y)
-    model.nx.fit(xt)
-    model.ny.fit(yt)
+    model.fit_normalizers(xt, yt)
     model.to(device)
     xt, yt = xt.to(device), yt.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
@@ -82,7 +81,7 @@ def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None,
 
 CONFIGS = {
     # hidden units, epochs
-    "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 40},
+    "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 60},
     "tiny": {"map_hidden": 32, "map_epochs": 1, "track_hidden": 32, "track_epochs": 1},
 }
 
@@ -128,7 +127,7 @@ def main(argv=None):
         x, y = tracking_samples(clips, role)
         if role in only:
             log(f"tracker {role}: {x.shape} -> {y.shape}")
-            m = TrackingNet(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"])
+            m = TrackingNet(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM)
             info = train_model(m, x, y, cfg["track_epochs"], device=device, log=log, seed=args.seed)
             export(m, f"tracker_{role}", os.path.join(args.out, f"tracker_{role}.onnx"), F.TRACK_IN,
                    {"hidden": cfg["track_hidden"], "role": role, "train": info,
@@ -141,7 +140,7 @@ def main(argv=None):
         os.makedirs(args.ablations, exist_ok=True)
         if "vanilla" in only:  # ablation (a): no latent, L_rec only
             log(f"ablation (a) vanilla MLP tracker {role}")
-            v = VanillaTracker(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"])
+            v = VanillaTracker(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM)
             info = train_model(v, x, y, cfg["track_epochs"], device=device, log=log, seed=args.seed)
             export(v, f"tracker_{role}", os.path.join(args.ablations, f"vanilla_{role}.onnx"), F.TRACK_IN,
                    {"ablation": "a", "role": role, "train": info, "default_pose": default_pose(x)})
@@ -149,7 +148,7 @@ def main(argv=None):
         if "pastinput" in only:  # ablation (b): fed the past three points, no mapping
             log(f"ablation (b) past-input tracker {role}")
             xp, yp = tracking_samples(clips, role, past_input=True)
-            p = TrackingNet(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"])
+            p = TrackingNet(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM)
             info = train_model(p, xp, yp, cfg["track_epochs"], device=device, log=log, seed=args.seed)
             export(p, f"tracker_{role}", os.path.join(args.ablations, f"pastinput_{role}.onnx"), F.TRACK_IN,
                    {"ablation": "b", "role": role, "input": "past three-point trajectory", "train": info,

@@ -1,0 +1,444 @@
+"""Numpy maths behind the Blender add-on's operators (no ``bpy`` here).
+
+The operators in ``operators/`` only move arrays between Blender and these
+functions; everything that can be computed without Blender is computed here, so
+it can be tested without it.
+
+Conventions
+-----------
+- Motion space (SPEC §1) is Y up; Blender is Z up. ``C`` maps motion space to
+  Blender: ``(x, y, z) -> (x, -z, y)``; rotations map as ``C · R · Cᵀ``.
+- Armatures are built at the origin in the SPEC rest pose (the ASF rest pose,
+  facing +Z in motion space = -Y in Blender). Bone ``n`` runs from the joint
+  position of its parent to its own joint position (SPEC §2), so its *tail* is
+  the SPEC joint position; the root bone is a short bone from the root joint
+  straight up (+Z in Blender).
+- A Blender bone's rest matrix (``Bone.matrix_local``, 3×3 part ``B``) has its
+  Y axis along the bone. A pose with global rotation ``R`` (motion space,
+  ``posed bone vector = R · rest bone vector``) gives the bone the armature-space
+  orientation ``C R Cᵀ · B``; the pose channel (``matrix_basis``) of a bone with
+  parent ``p`` is ``Bₙᵀ · (Rbₚᵀ Rbₙ) · Bₙ`` and only the root has a location.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .rotations import matrix_to_quat, quat_to_matrix
+from .skeleton import JOINT_NAMES, PARENTS
+
+# Motion space (Y up) -> Blender (Z up): (x, y, z) -> (x, -z, y).
+C = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+N_BONES = len(JOINT_NAMES)
+_PAR = np.maximum(PARENTS, 0)
+ROOT_BONE_LENGTH = 0.1  # m: the root bone points straight up from the root joint
+
+
+# --------------------------------------------------------------------------- axes
+
+def to_blender(points: np.ndarray, conv: np.ndarray = C) -> np.ndarray:
+    """Motion-space points ``(…, 3)`` in Blender (``conv`` = file -> Blender, default ``C``)."""
+    return np.asarray(points, dtype=np.float64) @ np.asarray(conv).T
+
+
+def to_motion(points: np.ndarray, conv: np.ndarray = C) -> np.ndarray:
+    """Blender points ``(…, 3)`` in motion space (inverse of :func:`to_blender`)."""
+    return np.asarray(points, dtype=np.float64) @ np.asarray(conv)
+
+
+def rot_to_blender(rot: np.ndarray, conv: np.ndarray = C) -> np.ndarray:
+    conv = np.asarray(conv)
+    return conv @ np.asarray(rot, dtype=np.float64) @ conv.T
+
+
+def rot_to_motion(rot: np.ndarray, conv: np.ndarray = C) -> np.ndarray:
+    conv = np.asarray(conv)
+    return conv.T @ np.asarray(rot, dtype=np.float64) @ conv
+
+
+def quat_to_blender(q: np.ndarray, conv: np.ndarray = C) -> np.ndarray:
+    """Quaternions ``(…, 4)`` (w, x, y, z) of motion-space rotations, as Blender rotations.
+
+    NaN quaternions (lost tracking) stay NaN."""
+    q = np.asarray(q, dtype=np.float64)
+    ok = np.isfinite(q).all(-1)
+    out = np.full(q.shape, np.nan)
+    if ok.any():
+        out[ok] = matrix_to_quat(rot_to_blender(quat_to_matrix(q[ok]), conv))
+    return out
+
+
+def quat_to_motion(q: np.ndarray, conv: np.ndarray = C) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    ok = np.isfinite(q).all(-1)
+    out = np.full(q.shape, np.nan)
+    if ok.any():
+        out[ok] = matrix_to_quat(rot_to_motion(quat_to_matrix(q[ok]), conv))
+    return out
+
+
+def continuous_quats(q: np.ndarray, axis: int = 0) -> np.ndarray:
+    """Flip quaternion signs along ``axis`` (time) so consecutive ones have a
+    non-negative dot product (no interpolation through the long way round)."""
+    q = np.moveaxis(np.array(q, dtype=np.float64), axis, 0)
+    if q.shape[0] > 1:
+        dots = np.sum(q[1:] * q[:-1], axis=-1)
+        flips = np.cumsum(dots < 0, axis=0) % 2
+        q[1:] *= np.where(flips[..., None] == 1, -1.0, 1.0)
+    return np.moveaxis(q, 0, axis)
+
+
+def fill_gaps(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Replace invalid rows of ``values (T, …)`` by the last valid row (the first
+    valid row before it); all-invalid stays as given with NaN replaced by 0."""
+    values = np.array(values, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    if valid.all():
+        return values
+    if not valid.any():
+        return np.nan_to_num(values)
+    idx = np.where(valid, np.arange(len(valid)), -1)
+    idx = np.maximum.accumulate(idx)
+    idx[idx < 0] = int(np.flatnonzero(valid)[0])
+    return values[idx]
+
+
+# --------------------------------------------------------------------------- rig reading
+
+def rest_relative_rotation(pose_world: np.ndarray, rest_world: np.ndarray) -> np.ndarray:
+    """Global rotation relative to the rest pose from world matrices ``(…, 4, 4)``
+    or ``(…, 3, 3)`` of a posed and a rest bone: ``G = Rpose · Rrestᵀ``
+    (scale removed from both). Independent of the bones' local axes (roll)."""
+    a = _unscaled(np.asarray(pose_world, dtype=np.float64)[..., :3, :3])
+    b = _unscaled(np.asarray(rest_world, dtype=np.float64)[..., :3, :3])
+    return a @ np.swapaxes(b, -1, -2)
+
+
+def _unscaled(m):
+    return m / np.linalg.norm(m, axis=-2, keepdims=True)
+
+
+def unit_scale_for_height(height: float, candidates=None, typical: float = 1.7) -> float:
+    """Factor to metres for a rig whose rest height is ``height`` in its own units:
+    the candidate unit that makes it closest (in log) to a ``typical`` person."""
+    if candidates is None:
+        candidates = (1.0, 0.0254 / 0.45, 0.0254, 0.01, 0.001)
+    if not (np.isfinite(height) and height > 0):
+        return 1.0
+    return float(min(candidates, key=lambda s: abs(np.log(height * s / typical))))
+
+
+# --------------------------------------------------------------------------- skeleton
+
+def rest_joints(bone_vectors: np.ndarray) -> np.ndarray:
+    """Rest joint positions ``(31, 3)`` (SPEC §2: ends of the bones), root at the origin."""
+    bv = np.asarray(bone_vectors, dtype=np.float64)
+    ends = np.zeros((N_BONES, 3))
+    for n in range(1, N_BONES):
+        ends[n] = ends[PARENTS[n]] + bv[n]
+    return ends
+
+
+def armature_rest(bone_vectors: np.ndarray, root_length: float = ROOT_BONE_LENGTH):
+    """Edit-bone heads and tails ``(31, 3)`` each, in Blender space, of the rest pose."""
+    ends = to_blender(rest_joints(bone_vectors))
+    heads = ends[_PAR].copy()
+    heads[0] = ends[0]
+    tails = ends.copy()
+    tails[0] = ends[0] + np.array([0.0, 0.0, root_length])
+    return heads, tails
+
+
+def estimate_bone_vectors(positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+    """Rest bone vectors ``(31, 3)`` of a posed sequence ``(T, 31, 3)``,
+    ``(T, 31, 3, 3)``: the per-component median over frames of ``Rᵀ (p − p_parent)``
+    (exact for a consistent pose with constant bone lengths)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    rotations = np.asarray(rotations, dtype=np.float64)
+    vec = positions - positions[:, _PAR]
+    local = np.einsum("tnba,tnb->tna", rotations, vec)
+    bv = np.median(local, axis=0)
+    bv[0] = 0.0
+    return bv
+
+
+def consistent_pose(positions: np.ndarray, rotations: np.ndarray, bone_vectors: np.ndarray | None = None):
+    """``(bone_vectors, positions, rotations)``: a rigid skeleton (constant bone
+    vectors, estimated when not given) and the pose made consistent with it
+    (``pose.recover_pose``: every bone's end on ``R · rest vector``)."""
+    from .pose import recover_pose
+
+    if bone_vectors is None:
+        bone_vectors = estimate_bone_vectors(positions, rotations)
+    pos, rot = recover_pose(np.asarray(positions, dtype=np.float64),
+                            np.asarray(rotations, dtype=np.float64), bone_vectors)
+    return np.asarray(bone_vectors, dtype=np.float64), pos, rot
+
+
+def pose_channels(positions: np.ndarray, rotations: np.ndarray, rest_rot: np.ndarray,
+                  rest_heads: np.ndarray):
+    """Blender pose channels of a consistent SPEC pose.
+
+    ``positions (T, 31, 3)``, ``rotations (T, 31, 3, 3)``: motion space.
+    ``rest_rot (31, 3, 3)``: the bones' rest orientation (``Bone.matrix_local``
+    3×3); ``rest_heads (31, 3)``: rest heads, Blender space.
+    Returns ``quats (T, 31, 4)`` (w, x, y, z; continuous in time) of
+    ``matrix_basis`` and the root bone's ``location (T, 3)``.
+    """
+    rb = rot_to_blender(rotations)  # (T, 31, 3, 3)
+    rel = rb.copy()
+    rel[:, 1:] = np.swapaxes(rb[:, _PAR[1:]], -1, -2) @ rb[:, 1:]
+    B = np.asarray(rest_rot, dtype=np.float64)
+    basis = np.swapaxes(B, -1, -2)[None] @ rel @ B[None]
+    quats = continuous_quats(matrix_to_quat(basis), axis=0)
+    root_b = to_blender(positions[:, 0])
+    loc = (root_b - rest_heads[0]) @ B[0]  # B0ᵀ · (p − head)
+    return quats, loc
+
+
+def bone_heads_tails(positions: np.ndarray, rotations: np.ndarray,
+                     root_length: float = ROOT_BONE_LENGTH):
+    """Posed bone heads and tails ``(T, 31, 3)`` in Blender space, as the armature
+    shows them (root: tail = head + R_root · up · root_length)."""
+    pb = to_blender(positions)
+    heads = pb[:, _PAR].copy()
+    heads[:, 0] = pb[:, 0]
+    tails = pb.copy()
+    rb0 = rot_to_blender(rotations[:, 0])
+    tails[:, 0] = pb[:, 0] + rb0[:, :, 2] * root_length
+    return heads, tails
+
+
+def skin_transforms(positions: np.ndarray, rotations: np.ndarray, bone_vectors: np.ndarray) -> np.ndarray:
+    """Per-bone deformation matrices ``(T, 31, 4, 4)`` in Blender space taking the
+    rest mesh to the posed one (what the Armature modifier applies)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    T = positions.shape[0]
+    rest_heads, _ = armature_rest(bone_vectors)
+    rb = rot_to_blender(rotations)
+    pb = to_blender(positions)
+    heads = pb[:, _PAR].copy()
+    heads[:, 0] = pb[:, 0]
+    out = np.zeros((T, N_BONES, 4, 4))
+    out[..., :3, :3] = rb
+    out[..., :3, 3] = heads - np.einsum("tnab,nb->tna", rb, rest_heads)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def lbs(vertices: np.ndarray, indices: np.ndarray, weights: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+    """Linear blend skinning: rest ``vertices (V, 3)``, influences ``indices``,
+    ``weights (V, K)``, ``transforms (…, J, 4, 4)`` -> ``(…, V, 3)``.
+    Weights are normalised per vertex (as Blender's Armature modifier does)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    s = w.sum(-1, keepdims=True)
+    w = np.where(s > 0, w / np.where(s > 0, s, 1.0), 0.0)
+    M = np.asarray(transforms, dtype=np.float64)[..., np.asarray(indices), :, :]  # (…, V, K, 4, 4)
+    blended = np.einsum("vk,...vkab->...vab", w, M)
+    return np.einsum("...vab,vb->...va", blended[..., :3, :3], v) + blended[..., :3, 3]
+
+
+# --------------------------------------------------------------------------- default body
+
+@dataclass
+class BodyMesh:
+    """A skinned mesh in motion space (the rest pose of :func:`rest_joints`):
+    ``vertices (V, 3)``, triangles ``faces (F, 3)``, ``indices``/``weights (V, K)``
+    (bone indices, SPEC order)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    indices: np.ndarray
+    weights: np.ndarray
+
+
+# Radius (m) of each bone's ellipsoid for a 1.7 m person; 0: no shape.
+_RADII = {
+    "root": 0.0, "lhipjoint": 0.10, "rhipjoint": 0.10, "lfemur": 0.075, "rfemur": 0.075,
+    "ltibia": 0.055, "rtibia": 0.055, "lfoot": 0.045, "rfoot": 0.045, "ltoes": 0.035, "rtoes": 0.035,
+    "lowerback": 0.13, "upperback": 0.14, "thorax": 0.15, "lowerneck": 0.06, "upperneck": 0.055,
+    "head": 0.105, "lclavicle": 0.055, "rclavicle": 0.055, "lhumerus": 0.05, "rhumerus": 0.05,
+    "lradius": 0.042, "rradius": 0.042, "lwrist": 0.035, "rwrist": 0.035, "lhand": 0.035,
+    "rhand": 0.035, "lfingers": 0.02, "rfingers": 0.02, "lthumb": 0.018, "rthumb": 0.018,
+}
+
+
+def simple_body(bone_vectors: np.ndarray, rings: int = 8, segments: int = 12) -> BodyMesh:
+    """A default body: one ellipsoid per bone spanning it, the part near the bone's
+    start blended with the parent bone. Used when the core has no ``skinning`` module."""
+    bv = np.asarray(bone_vectors, dtype=np.float64)
+    ends = rest_joints(bv)
+    scale = max(float(ends[:, 1].max() - ends[:, 1].min()) / 1.55, 0.2)  # ~1.55 m head-to-toe span
+    verts, faces, idx, wts = [], [], [], []
+    base = 0
+    phi = np.linspace(0.0, np.pi, rings + 2)[1:-1]  # ring latitudes (poles separate)
+    theta = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
+    for n, name in enumerate(JOINT_NAMES):
+        r = _RADII[name] * scale
+        length = float(np.linalg.norm(bv[n]))
+        if r <= 0 or length <= 1e-6:
+            continue
+        a, b = ends[PARENTS[n]], ends[n]
+        d = (b - a) / length
+        u = np.cross(d, [0.0, 1.0, 0.0] if abs(d[1]) < 0.9 else [1.0, 0.0, 0.0])
+        u /= np.linalg.norm(u)
+        w = np.cross(d, u)
+        centre, half = (a + b) / 2, max(length / 2, r)
+        if name == "head":
+            centre, half = a + d * max(length / 2, r * 0.9), max(length / 2, r * 1.15)
+        s_ring = -np.cos(phi)  # -1 .. 1 along the bone
+        rad = np.sin(phi)
+        ring_pts = (centre + s_ring[:, None, None] * half * d
+                    + rad[:, None, None] * r * (np.cos(theta)[None, :, None] * u + np.sin(theta)[None, :, None] * w))
+        pts = np.concatenate([(centre - half * d)[None], ring_pts.reshape(-1, 3), (centre + half * d)[None]])
+        # Faces: bottom fan, quads as two triangles, top fan.
+        f = []
+        nr, ns = rings, segments
+        for j in range(ns):
+            f.append((0, 1 + (j + 1) % ns, 1 + j))
+        for i in range(nr - 1):
+            for j in range(ns):
+                p0 = 1 + i * ns + j
+                p1 = 1 + i * ns + (j + 1) % ns
+                p2 = 1 + (i + 1) * ns + (j + 1) % ns
+                p3 = 1 + (i + 1) * ns + j
+                f.extend([(p0, p1, p2), (p0, p2, p3)])
+        top = 1 + nr * ns
+        for j in range(ns):
+            p = 1 + (nr - 1) * ns
+            f.append((top, p + j, p + (j + 1) % ns))
+        # Weights: the start quarter blends with the parent bone (not the root bone).
+        par = int(PARENTS[n])
+        s_all = np.clip(((pts - a) @ d) / length, 0.0, 1.0)
+        w_par = np.where(par > 0, 0.5 * np.clip(1.0 - s_all / 0.25, 0.0, 1.0), 0.0)
+        verts.append(pts)
+        faces.append(np.asarray(f, dtype=np.int64) + base)
+        idx.append(np.stack([np.full(len(pts), n), np.full(len(pts), max(par, 0))], axis=1))
+        wts.append(np.stack([1.0 - w_par, w_par], axis=1))
+        base += len(pts)
+    return BodyMesh(np.concatenate(verts), np.concatenate(faces), np.concatenate(idx),
+                    np.round(np.concatenate(wts), 6))
+
+
+def body_arrays(body):
+    """``(vertices (V, 3), faces (F, k), indices (V, K), weights (V, K))`` from a
+    body object of the core (``skinning.make_body``) or :class:`BodyMesh`, for
+    the attribute names either uses: ``weights`` dense ``(V, 31)`` or sparse
+    ``indices``/``weight_indices`` + ``weights``/``values``/``weight_values``."""
+    verts = np.asarray(getattr(body, "vertices"), dtype=np.float64)
+    faces = np.asarray(getattr(body, "faces"))
+    idx = None
+    for name in ("indices", "weight_indices", "joint_indices", "bone_indices"):
+        if getattr(body, name, None) is not None:
+            idx = np.asarray(getattr(body, name))
+            break
+    val = None
+    for name in ("weights", "weight_values", "values", "joint_weights"):
+        if getattr(body, name, None) is not None:
+            val = np.asarray(getattr(body, name), dtype=np.float64)
+            break
+    if val is None:
+        raise ValueError("body has no skinning weights")
+    if idx is None:
+        if val.ndim != 2 or val.shape[1] != N_BONES:
+            raise ValueError("dense body weights must be (V, 31)")
+        idx = np.broadcast_to(np.arange(N_BONES), val.shape)
+    return verts, faces, np.asarray(idx, dtype=np.int64), val
+
+
+# --------------------------------------------------------------------------- camera
+
+def hip_forward(positions: np.ndarray) -> np.ndarray:
+    """Horizontal facing ``(…, 3)`` (motion space) from the hip joints (SPEC §6)."""
+    from .skeleton import HIPS
+
+    lr = positions[..., HIPS[0], :] - positions[..., HIPS[1], :]
+    f = np.cross(lr, np.array([0.0, 1.0, 0.0]))
+    f[..., 1] = 0.0
+    n = np.linalg.norm(f, axis=-1, keepdims=True)
+    return np.where(n > 1e-9, f / np.maximum(n, 1e-12), np.array([0.0, 0.0, 1.0]))
+
+
+def frame_camera(points_b: np.ndarray, view_dir_b: np.ndarray, fov: float, aspect: float = 16 / 9,
+                 margin: float = 1.15, elevation_deg: float = 12.0):
+    """A camera looking at ``points_b (N, 3)`` (Blender space) from the side
+    ``view_dir_b`` (horizontal, from the target towards the camera), so that the
+    points' bounding sphere fills the field of view. Returns ``(location (3,),
+    rotation (3, 3))``: camera-to-world, looking along its local −Z, +Y up."""
+    pts = np.asarray(points_b, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(-1)]
+    lo, hi = pts.min(0), pts.max(0)
+    target = (lo + hi) / 2
+    radius = max(float(np.linalg.norm(hi - lo)) / 2, 0.5)
+    half = fov / 2 if aspect >= 1 else np.arctan(np.tan(fov / 2) * aspect)
+    half_v = np.arctan(np.tan(fov / 2) / aspect) if aspect >= 1 else fov / 2
+    dist = margin * radius / np.sin(min(half, half_v))
+    v = np.asarray(view_dir_b, dtype=np.float64).copy()
+    v[2] = 0.0
+    v = v / np.linalg.norm(v) if np.linalg.norm(v) > 1e-9 else np.array([0.0, -1.0, 0.0])
+    el = np.deg2rad(elevation_deg)
+    back = v * np.cos(el) + np.array([0.0, 0.0, np.sin(el)])
+    loc = target + back * dist
+    z = back  # camera looks along -Z, so +Z points from the target to the camera
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return loc, np.stack([x, y, z], axis=1)
+
+
+# --------------------------------------------------------------------------- rig calibration
+
+def body_frames(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Upright body frames ``(…, 3, 3)`` (motion space; columns: left, up,
+    forward) from a left and a right point (hips or shoulders) ``(…, 3)``."""
+    x = np.asarray(left, dtype=np.float64) - np.asarray(right, dtype=np.float64)
+    x[..., 1] = 0.0
+    n = np.linalg.norm(x, axis=-1, keepdims=True)
+    x = np.where(n > 1e-9, x / np.maximum(n, 1e-12), np.array([1.0, 0.0, 0.0]))
+    y = np.broadcast_to(np.array([0.0, 1.0, 0.0]), x.shape)
+    z = np.cross(x, y)
+    return np.stack([x, y, z], axis=-1)
+
+
+def mean_rotation(rots: np.ndarray) -> np.ndarray:
+    """Chordal mean ``(3, 3)`` of rotations ``(N, 3, 3)``: the rotation nearest to their sum."""
+    u, _, vt = np.linalg.svd(np.sum(np.asarray(rots, dtype=np.float64), axis=0))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def rest_faces_spec(left, right, head, tol_deg: float = 10.0) -> bool:
+    """Whether a rig's rest pose (motion-space points) is the SPEC rest pose's
+    orientation: upright (``head`` above the left/right midpoint along +Y) and
+    facing +Z (left along +X), within ``tol_deg``."""
+    left, right, head = (np.asarray(v, dtype=np.float64) for v in (left, right, head))
+    lr = left - right
+    up = head - (left + right) / 2
+    if np.linalg.norm(lr) < 1e-9 or np.linalg.norm(up) < 1e-9:
+        return False
+    c = np.cos(np.deg2rad(tol_deg))
+    return bool(lr[0] / np.linalg.norm(lr) > c and up[1] / np.linalg.norm(up) > c)
+
+
+def rig_rotations(world: np.ndarray, rest_world: np.ndarray, left: np.ndarray, right: np.ndarray,
+                  rest_ok: bool) -> np.ndarray:
+    """SPEC global rotations ``(T, K, 3, 3)`` of rig bones from their world
+    orientations ``world (T, K, 3, 3)`` (motion space, any bone-local axes).
+
+    ``rest_ok`` (the rig's rest pose is the SPEC rest pose): ``R = W · W_restᵀ``,
+    exact. Otherwise the rest pose says nothing about where the bones face, and
+    each bone's offset ``K`` is calibrated so that on average over the clip the
+    bone faces like the body (``B``: :func:`body_frames` of ``left``/``right``
+    ``(T, 3)``): ``K = mean(Wᵀ B)``, ``R = W · K`` — an estimate (the average
+    head-to-body offset of the clip is taken as zero)."""
+    world = np.asarray(world, dtype=np.float64)
+    world = world / np.linalg.norm(world, axis=-2, keepdims=True)
+    if rest_ok:
+        rest = np.asarray(rest_world, dtype=np.float64)
+        rest = rest / np.linalg.norm(rest, axis=-2, keepdims=True)
+        return world @ np.swapaxes(rest, -1, -2)[None]
+    B = body_frames(left, right)  # (T, 3, 3)
+    K = np.stack([mean_rotation(np.swapaxes(world[:, k], -1, -2) @ B) for k in range(world.shape[1])])
+    return world @ K[None]

@@ -1,0 +1,272 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Bake a synthesised duet (``runtime.Duet``, SPEC §4) into the scene.
+
+Per dancer: an armature ("DP Leader" / "DP Follower") with the 31 SPEC §2 bones
+(bone ``n`` from its parent's joint to its own joint, so its tail is the SPEC
+joint position; the root bone points up from the root joint), one NEW action
+with a keyframe per 30 Hz frame written in bulk (quaternion rotation on every
+bone, location on the root only), and a default body mesh skinned to it (vertex
+groups named after the bones, Armature modifier). All the maths is in
+``dancing_points_addon.blender_math``; this module only creates the data-blocks.
+
+Every bake is a new version: a new collection "DP Duet <take>" with new
+armatures and actions ("DP Leader <take> v2", ...); earlier duets of the same
+take are hidden, never modified.
+"""
+
+import bpy
+import numpy as np
+
+from ..dancing_points_addon import blender_math as bm
+from ..dancing_points_addon.skeleton import JOINT_NAMES, PARENTS
+from . import compat
+from .props import KIND_DUET, is_duet
+
+ROLES = ("leader", "follower")
+ROLE_LABEL = {"leader": "Leader", "follower": "Follower"}
+# Linear RGB: leader blue-ish, follower red-ish.
+ROLE_COLOUR = {"leader": (0.10, 0.28, 0.85, 1.0), "follower": (0.85, 0.12, 0.08, 1.0)}
+
+
+def make_body(bone_vectors):
+    """The default body of a skeleton: the core's ``skinning.make_body`` when it
+    exists, else ``blender_math.simple_body``. Returns ``(vertices (motion space),
+    faces, indices, weights)``."""
+    try:
+        from ..dancing_points_addon import skinning
+    except ImportError:
+        skinning = None
+    if skinning is not None and hasattr(skinning, "make_body"):
+        try:
+            return bm.body_arrays(skinning.make_body(bone_vectors))
+        except Exception as exc:  # a body we cannot use: fall back, say why
+            print("Dancing Points: skinning.make_body unusable ({:s}: {:s}); using the simple body".format(
+                type(exc).__name__, str(exc)))
+    return bm.body_arrays(bm.simple_body(bone_vectors))
+
+
+class _Created:
+    """Data-blocks made by a bake, removed again if the bake fails."""
+
+    def __init__(self):
+        self.ids = []
+
+    def add(self, id_block):
+        self.ids.append(id_block)
+        return id_block
+
+    def remove_all(self):
+        alive = []
+        for x in self.ids:
+            try:
+                x.name  # raises ReferenceError when already freed
+                alive.append(x)
+            except ReferenceError:
+                pass
+        if alive:
+            bpy.data.batch_remove(alive)
+        self.ids = []
+
+
+def _ensure_object_mode(context):
+    obj = context.view_layer.objects.active
+    if obj is not None and obj.mode != 'OBJECT':
+        bpy.ops.object.mode_set(mode='OBJECT')
+
+
+def build_armature(context, name, bone_vectors, collection, created):
+    """An armature object in the SPEC rest pose of ``bone_vectors`` (at the origin)."""
+    arm = created.add(bpy.data.armatures.new(name))
+    obj = created.add(bpy.data.objects.new(name, arm))
+    collection.objects.link(obj)
+    heads, tails = bm.armature_rest(bone_vectors)
+    view_layer = context.view_layer
+    prev_active = view_layer.objects.active
+    _ensure_object_mode(context)
+    view_layer.objects.active = obj
+    bpy.ops.object.mode_set(mode='EDIT')
+    try:
+        ebs = []
+        for n, bname in enumerate(JOINT_NAMES):
+            eb = arm.edit_bones.new(bname)
+            eb.head = heads[n]
+            eb.tail = tails[n]
+            eb.roll = 0.0
+            p = int(PARENTS[n])
+            if p >= 0:
+                eb.parent = ebs[p]
+                # Connected where the bone starts at its parent's tail (not for the root's children).
+                eb.use_connect = p > 0
+            ebs.append(eb)
+    finally:
+        bpy.ops.object.mode_set(mode='OBJECT')
+        view_layer.objects.active = prev_active
+    arm.display_type = 'OCTAHEDRAL'
+    obj.show_in_front = False
+    for pb in obj.pose.bones:
+        pb.rotation_mode = 'QUATERNION'
+    return obj
+
+
+def rest_frames(arm_obj):
+    """``(rest rotations (31, 3, 3), rest heads (31, 3))`` of the armature's bones
+    (``Bone.matrix_local``), in SPEC order."""
+    bones = arm_obj.data.bones
+    rot = np.empty((len(JOINT_NAMES), 3, 3))
+    heads = np.empty((len(JOINT_NAMES), 3))
+    for n, name in enumerate(JOINT_NAMES):
+        m = np.array(bones[name].matrix_local)
+        rot[n] = m[:3, :3]
+        heads[n] = m[:3, 3]
+    return rot, heads
+
+
+def key_armature(arm_obj, action_name, positions, rotations, frame_start):
+    """A NEW action on ``arm_obj`` with one keyframe per frame (bulk writes)."""
+    rest_rot, rest_heads = rest_frames(arm_obj)
+    quats, loc = bm.pose_channels(positions, rotations, rest_rot, rest_heads)
+    frames = frame_start + np.arange(positions.shape[0], dtype=np.float64)
+    action, slot = compat.new_action_for(arm_obj, action_name)
+    for n, name in enumerate(JOINT_NAMES):
+        path = 'pose.bones["{:s}"].'.format(name)
+        for i in range(4):
+            compat.write_keys(compat.ensure_fcurves(action, slot, path + "rotation_quaternion", i, name),
+                              frames, quats[:, n, i])
+        if n == 0:
+            for i in range(3):
+                compat.write_keys(compat.ensure_fcurves(action, slot, path + "location", i, name),
+                                  frames, loc[:, i])
+    return action
+
+
+def _material(name, colour, created):
+    mat = created.add(bpy.data.materials.new(name))
+    mat.diffuse_color = colour  # Workbench and the viewport's Material colour
+    try:
+        if mat.node_tree is None and hasattr(mat, "use_nodes"):
+            mat.use_nodes = True
+        nodes = mat.node_tree.nodes if mat.node_tree is not None else ()
+        for node in nodes:
+            if node.type == 'BSDF_PRINCIPLED':
+                node.inputs["Base Color"].default_value = colour
+                node.inputs["Roughness"].default_value = 0.6
+    except (AttributeError, KeyError, TypeError):
+        pass
+    return mat
+
+
+def build_body(name, arm_obj, bone_vectors, colour, collection, created):
+    """The default body mesh, skinned to ``arm_obj`` (vertex groups + Armature modifier)."""
+    verts, faces, idx, wts = make_body(bone_vectors)
+    verts_b = bm.to_blender(verts)
+    mesh = created.add(bpy.data.meshes.new(name))
+    mesh.from_pydata(verts_b.tolist(), [], np.asarray(faces, dtype=np.int64).tolist())
+    mesh.update()
+    try:
+        mesh.shade_smooth()
+    except AttributeError:  # before 4.1
+        mesh.polygons.foreach_set("use_smooth", np.ones(len(mesh.polygons), dtype=bool))
+    mesh.materials.append(_material(name, colour, created))
+    obj = created.add(bpy.data.objects.new(name, mesh))
+    collection.objects.link(obj)
+    obj.parent = arm_obj
+    groups = [obj.vertex_groups.new(name=b) for b in JOINT_NAMES]
+    for b in range(len(JOINT_NAMES)):
+        rows, cols = np.nonzero((idx == b) & (wts > 0))
+        if not len(rows):
+            continue
+        w = wts[rows, cols]
+        for value in np.unique(w):
+            groups[b].add(rows[w == value].tolist(), float(value), 'ADD')
+    mod = obj.modifiers.new("Armature", 'ARMATURE')
+    mod.object = arm_obj
+    mod.use_vertex_groups = True
+    mod.use_bone_envelopes = False
+    return obj
+
+
+def _next_version(take_name):
+    versions = [c.dancing_points.version for c in bpy.data.collections
+                if is_duet(c) and c.dancing_points.take_name == take_name]
+    return max(versions, default=0) + 1
+
+
+def _hide_previous(take_name, keep):
+    for c in bpy.data.collections:
+        if c != keep and is_duet(c) and c.dancing_points.take_name == take_name:
+            c.hide_viewport = True
+            c.hide_render = True
+
+
+def ensure_camera_and_light(context, points_b, view_dir_b):
+    """Add a camera framing ``points_b`` when the scene has none, and a sun when it
+    has no light. Returns the objects made."""
+    from mathutils import Matrix
+
+    scene = context.scene
+    made = []
+    if scene.camera is None:
+        cam_data = bpy.data.cameras.new("DP Camera")
+        cam_data.lens = 35.0
+        cam = bpy.data.objects.new("DP Camera", cam_data)
+        scene.collection.objects.link(cam)
+        r = scene.render
+        aspect = (r.resolution_x * r.pixel_aspect_x) / max(r.resolution_y * r.pixel_aspect_y, 1e-9)
+        loc, rot = bm.frame_camera(points_b, view_dir_b, cam_data.angle, aspect)
+        m = Matrix(rot.tolist()).to_4x4()
+        m.translation = loc.tolist()
+        cam.matrix_world = m
+        scene.camera = cam
+        made.extend((cam_data, cam))
+    if not any(o.type == 'LIGHT' for o in scene.objects):
+        sun_data = bpy.data.lights.new("DP Sun", 'SUN')
+        sun_data.energy = 3.0
+        sun = bpy.data.objects.new("DP Sun", sun_data)
+        sun.rotation_euler = (np.deg2rad(40.0), 0.0, np.deg2rad(30.0))
+        scene.collection.objects.link(sun)
+        made.extend((sun_data, sun))
+    return made
+
+
+def bake_duet(context, duet, take_name, frame_start=1):
+    """Bake ``duet`` (motion space, SPEC §4) as a new duet collection; returns it.
+
+    The poses are first made rigid (``blender_math.consistent_pose``: constant
+    bone vectors, each bone's end = its parent's end + R · rest vector), which
+    leaves a pose the runtime already made consistent unchanged."""
+    created = _Created()
+    scene = context.scene
+    try:
+        version = _next_version(take_name)
+        short = take_name[len("DP Take "):] if take_name.startswith("DP Take ") else take_name
+        coll = created.add(bpy.data.collections.new("DP Duet " + short))
+        scene.collection.children.link(coll)
+        coll.dancing_points.kind = KIND_DUET
+        coll.dancing_points.take_name = take_name
+        coll.dancing_points.version = version
+        rigs = {}
+        all_points = []
+        for role in ROLES:
+            label = ROLE_LABEL[role]
+            pos = getattr(duet, role + "_positions")
+            rot = getattr(duet, role + "_rotations")
+            bv, pos, rot = bm.consistent_pose(pos, rot)
+            arm = build_armature(context, "DP " + label, bv, coll, created)
+            action = key_armature(arm, "DP {:s} {:s} v{:d}".format(label, short, version), pos, rot, frame_start)
+            created.add(action)
+            body = build_body("DP {:s} Body".format(label), arm, bv, ROLE_COLOUR[role], coll, created)
+            arm["dp_role"] = role
+            body["dp_role"] = role
+            rigs[role] = (arm, body)
+            all_points.append(bm.to_blender(pos[:: max(1, len(pos) // 200)]).reshape(-1, 3))
+        _hide_previous(take_name, coll)
+        lead = duet.leader_positions
+        view = bm.to_blender(bm.hip_forward(lead[0]))
+        c, s = np.cos(np.deg2rad(25.0)), np.sin(np.deg2rad(25.0))
+        view = np.array([c * view[0] - s * view[1], s * view[0] + c * view[1], 0.0])
+        for obj in ensure_camera_and_light(context, np.concatenate(all_points), view):
+            created.add(obj)
+        return coll, rigs
+    except Exception:
+        created.remove_all()
+        raise

@@ -1,0 +1,146 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Data the add-on stores in a .blend: take settings on the take's collection,
+duet bookkeeping, and the scene's synthesis settings.
+
+Everything lives in ID properties (``Collection.dancing_points``,
+``Scene.dancing_points``), so it is saved with the file and survives the add-on
+being disabled (as plain custom properties).
+"""
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+# Values of Collection.dancing_points.kind
+KIND_NONE, KIND_TAKE, KIND_DUET = 'NONE', 'TAKE', 'DUET'
+# ID property on the three take empties naming the device they carry.
+DEVICE_PROP = "dp_device"
+# Animated ID property on the empties: 1 tracked, 0 lost (SPEC §3 lost tracking).
+TRACKED_PROP = "dp_tracked"
+DEVICES = ("head", "lhand", "rhand")
+DEVICE_OBJECT_NAMES = {"head": "Head", "lhand": "LeftHand", "rhand": "RightHand"}
+
+
+class DP_CollectionSettings(bpy.types.PropertyGroup):
+    """Set on the collections the add-on makes: a take (three empties) or a duet."""
+
+    kind: EnumProperty(
+        name="Kind",
+        items=((KIND_NONE, "None", "Not made by Dancing Points"),
+               (KIND_TAKE, "Take", "A three-point take: Head, LeftHand, RightHand empties"),
+               (KIND_DUET, "Duet", "A baked duet: leader and follower armatures")),
+        default=KIND_NONE,
+    )
+    # -- take ------------------------------------------------------------------
+    source: StringProperty(name="Source", description="File the take was imported from", subtype='FILE_PATH')
+    source_type: StringProperty(name="Source Type", description="csv, amc, bvh or fbx")
+    height: FloatProperty(
+        name="Leader Height",
+        description="Standing height of the leading dancer, for calibration (0: estimate from the head height)",
+        default=0.0, min=0.0, soft_max=2.5, unit='LENGTH', precision=3,
+    )
+    input_fps: FloatProperty(name="Input FPS", description="Frame rate override used at import (0: the file's)",
+                             default=0.0, min=0.0)
+    source_fps: FloatProperty(name="Source FPS", description="Frame rate of the imported file", default=0.0)
+    fps: FloatProperty(name="Take FPS", description="Rate of the take's keyframes (the networks' 30 Hz)",
+                       default=30.0)
+    frame_start: IntProperty(name="Start Frame", description="Scene frame of the take's first sample", default=1)
+    n_frames: IntProperty(name="Frames", description="Number of samples of the take", default=0, min=0)
+    t0: FloatProperty(name="Start Time", description="Time (s) of the take's first sample in the file", default=0.0)
+    axis_forward: StringProperty(name="Forward", default='-Z')
+    axis_up: StringProperty(name="Up", default='Y')
+    # -- duet ------------------------------------------------------------------
+    take_name: StringProperty(name="Take", description="Name of the take collection this duet was baked from")
+    version: IntProperty(name="Version", description="Bake number for its take (1, 2, ...)", default=0)
+
+
+def _is_take(self, coll):
+    return getattr(coll, "dancing_points", None) is not None and coll.dancing_points.kind == KIND_TAKE
+
+
+class DP_SceneSettings(bpy.types.PropertyGroup):
+    take: PointerProperty(
+        name="Take", type=bpy.types.Collection, poll=_is_take,
+        description="The take that Synthesise works on (default: the active object's take)",
+    )
+    foot_lock: BoolProperty(name="Foot Locking", default=True,
+                            description="Pin feet in contact with the floor (contact-based IK)")
+    hand_ik: BoolProperty(name="Hand IK", default=False,
+                          description="Put the leader's head and wrists exactly on the tracked points")
+    preview_format: EnumProperty(
+        name="Format", default='PNG',
+        items=(('PNG', "PNG Sequence", "One PNG image per frame"),
+               ('FFMPEG', "Video", "An MPEG-4 (H.264) video")),
+    )
+    preview_path: StringProperty(name="Output", subtype='FILE_PATH', default="//dancing_points_preview/",
+                                 description="Where Render Preview writes its frames or video")
+
+
+classes = (DP_CollectionSettings, DP_SceneSettings)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Collection.dancing_points = PointerProperty(type=DP_CollectionSettings)
+    bpy.types.Scene.dancing_points = PointerProperty(type=DP_SceneSettings)
+
+
+def unregister():
+    del bpy.types.Scene.dancing_points
+    del bpy.types.Collection.dancing_points
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
+
+
+# --------------------------------------------------------------------------- lookups
+
+def is_take(coll):
+    return coll is not None and _is_take(None, coll)
+
+
+def is_duet(coll):
+    return coll is not None and getattr(coll, "dancing_points", None) is not None \
+        and coll.dancing_points.kind == KIND_DUET
+
+
+def device_objects(take_coll):
+    """``{device: object}`` of the take's empties (by their ``dp_device`` property)."""
+    out = {}
+    for obj in take_coll.all_objects:
+        dev = obj.get(DEVICE_PROP)
+        if dev in DEVICES and dev not in out:
+            out[dev] = obj
+    return out
+
+
+def take_of_object(obj):
+    """The take collection an object belongs to: its own collection, or the take a
+    duet it belongs to was baked from."""
+    if obj is None:
+        return None
+    for coll in obj.users_collection:
+        if is_take(coll):
+            return coll
+    for coll in obj.users_collection:
+        if is_duet(coll):
+            take = bpy.data.collections.get(coll.dancing_points.take_name)
+            if is_take(take):
+                return take
+    return None
+
+
+def active_take(context, name=""):
+    """The take to work on: ``name`` if given, else the active object's, else the
+    scene's ``dancing_points.take``, else the only take in the scene."""
+    if name:
+        coll = bpy.data.collections.get(name)
+        return coll if is_take(coll) else None
+    take = take_of_object(getattr(context, "active_object", None))
+    if take is not None:
+        return take
+    scene = context.scene
+    settings = getattr(scene, "dancing_points", None)
+    if settings is not None and is_take(settings.take):
+        return settings.take
+    takes = [c for c in scene.collection.children_recursive if is_take(c)]
+    return takes[0] if len(takes) == 1 else None

@@ -1,0 +1,249 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""``bpy.ops.dancing_points.synthesize`` (SPEC §8): take in, baked duet out.
+
+From a script (``execute``) it runs to completion. From the UI (``invoke``) it
+is modal: the core loop runs in a worker thread (numpy and ONNX Runtime only,
+no ``bpy``), a timer shows progress in the status bar and Esc cancels; nothing
+in the scene changes before the loop has finished, so cancelling leaves the
+scene as it was. The bake then happens on the main thread as one undo step.
+"""
+
+import os
+import threading
+import time
+
+import bpy
+from bpy.props import BoolProperty, StringProperty
+
+from ..dancing_points_addon.errors import InputError
+from . import bake
+from .props import active_take
+from .take_io import TakeError, take_from_collection
+
+MODEL_ENV = "DP_MODEL_DIR"
+_NET_CACHE = {}
+
+
+class ModelError(Exception):
+    """The networks cannot be loaded (one user-facing line)."""
+
+
+def _preferences(context):
+    try:
+        from ..preferences import get_preferences
+        return get_preferences(context)
+    except (ImportError, AttributeError):
+        return None
+
+
+def resolve_model_dir(context, explicit=""):
+    """Operator property > ``$DP_MODEL_DIR`` > preferences > the bundled ``models/``."""
+    from ..dancing_points_addon import runtime
+
+    prefs = _preferences(context)
+    for cand in (explicit, os.environ.get(MODEL_ENV, ""), getattr(prefs, "model_dir", "") if prefs else ""):
+        if cand:
+            return os.path.abspath(bpy.path.abspath(cand))
+    return runtime.MODEL_DIR
+
+
+def _load_nets(model_dir, threads):
+    from ..dancing_points_addon import runtime
+
+    paths = {k: os.path.join(model_dir, f) for k, f in runtime.MODEL_FILES.items()}
+    missing = [os.path.basename(p) for p in paths.values() if not os.path.isfile(p)]
+    if missing:
+        raise ModelError("no synthesis models in {:s} (missing {:s})".format(model_dir, ", ".join(missing)))
+    key = (model_dir, int(threads), tuple(os.path.getmtime(p) for p in paths.values()))
+    nets = _NET_CACHE.get(key)
+    if nets is None:
+        try:
+            nets = {k: runtime.OnnxNet(p, threads) for k, p in paths.items()}
+        except ImportError:
+            raise ModelError("onnxruntime is not installed in Blender's Python") from None
+        except Exception as exc:
+            raise ModelError("cannot load the models in {:s}: {:s}".format(
+                model_dir, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)) from None
+        _NET_CACHE.clear()
+        _NET_CACHE[key] = nets
+    return nets
+
+
+def make_synthesizer(model_dir, threads=1, height=None, foot_lock=True, hand_ik=False):
+    """``(Synthesizer, warnings)``; options the core cannot provide are switched
+    off with a warning rather than failing."""
+    from ..dancing_points_addon import runtime
+
+    nets = _load_nets(model_dir, threads)
+    warnings = []
+    try:
+        synth = runtime.Synthesizer(model_dir, threads, height, foot_lock, hand_ik, nets=nets)
+    except ImportError:
+        warnings.append("foot locking / hand IK not available in this version; synthesised without them")
+        synth = runtime.Synthesizer(model_dir, threads, height, False, False, nets=nets)
+    except ValueError as exc:
+        raise ModelError(str(exc)) from None
+    return synth, warnings
+
+
+class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
+    """Synthesise the duet of the active take and bake it into leader and follower armatures"""
+
+    bl_idname = "dancing_points.synthesize"
+    bl_label = "Synthesise Duet"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    take: StringProperty(name="Take", description="Take collection to use (empty: the active take)",
+                         options={'SKIP_SAVE'})
+    foot_lock: BoolProperty(name="Foot Locking", default=True,
+                            description="Pin feet in contact with the floor (contact-based IK)")
+    hand_ik: BoolProperty(name="Hand IK", default=False,
+                          description="Put the leader's head and wrists exactly on the tracked points")
+    model_dir: StringProperty(name="Model Folder", subtype='DIR_PATH', options={'HIDDEN', 'SKIP_SAVE'},
+                              description="Folder with the ONNX models (empty: $DP_MODEL_DIR, the "
+                                          "preferences, else the bundled models)")
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None
+
+    # -- shared ------------------------------------------------------------------
+    def _prepare(self, context):
+        coll = active_take(context, self.take)
+        if coll is None:
+            if self.take:
+                raise TakeError("no take named '{:s}'".format(self.take))
+            raise TakeError("no active take: import one (File > Import > Dancing Points take) "
+                            "or select one of its empties")
+        take = take_from_collection(context, coll)
+        prefs = _preferences(context)
+        threads = int(getattr(prefs, "onnx_threads", 1)) if prefs else 1
+        synth, warnings = make_synthesizer(resolve_model_dir(context, self.model_dir), threads,
+                                           take.height, self.foot_lock, self.hand_ik)
+        for w in warnings:
+            self.report({'WARNING'}, w)
+        return coll, take, synth
+
+    def _error(self, exc):
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if not isinstance(exc, (TakeError, InputError, ModelError)):
+            msg = "Dancing Points synthesis failed: {:s}: {:s}".format(type(exc).__name__, msg)
+        self.report({'ERROR'}, msg)
+        return {'CANCELLED'}
+
+    def _finish(self, context, coll, duet, t_synth):
+        t0 = time.perf_counter()
+        try:
+            duet_coll, _ = bake.bake_duet(context, duet, coll.name, coll.dancing_points.frame_start)
+        except Exception as exc:
+            return self._error(exc)
+        t_bake = time.perf_counter() - t0
+        self.report({'INFO'}, "Baked '{:s}': {:d} frames (synthesis {:.1f} s, bake {:.1f} s)".format(
+            duet_coll.name, duet.n_frames, t_synth, t_bake))
+        return {'FINISHED'}
+
+    # -- from a script -------------------------------------------------------------
+    def execute(self, context):
+        try:
+            coll, take, synth = self._prepare(context)
+        except Exception as exc:
+            return self._error(exc)
+        wm = context.window_manager
+        t0 = time.perf_counter()
+        wm.progress_begin(0, 100)
+        try:
+            duet = synth.synthesize(take, progress=lambda i, n: wm.progress_update(100.0 * i / max(n, 1)))
+        except KeyboardInterrupt:
+            self.report({'WARNING'}, "Synthesis cancelled")
+            return {'CANCELLED'}
+        except Exception as exc:
+            return self._error(exc)
+        finally:
+            wm.progress_end()
+        return self._finish(context, coll, duet, time.perf_counter() - t0)
+
+    # -- from the UI: modal with a worker thread -----------------------------------
+    def invoke(self, context, event):
+        if context.window is None:
+            return self.execute(context)
+        try:
+            coll, take, synth = self._prepare(context)
+        except Exception as exc:
+            return self._error(exc)
+        self._coll_name = coll.name
+        self._state = {"i": 0, "n": max(take.n_frames, 1), "cancel": False, "duet": None, "error": None}
+        self._t0 = time.perf_counter()
+        state = self._state
+
+        def progress(i, n):
+            state["i"], state["n"] = i, n
+            return not state["cancel"]
+
+        def work():
+            try:
+                state["duet"] = synth.synthesize(take, progress=progress)
+            except KeyboardInterrupt:
+                state["error"] = "cancelled"
+            except Exception as exc:  # reported on the main thread
+                state["error"] = exc
+
+        self._thread = threading.Thread(target=work, name="dancing_points_synthesis", daemon=True)
+        self._thread.start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        self._status(context, "Dancing Points: synthesising... (Esc to cancel)")
+        return {'RUNNING_MODAL'}
+
+    def _status(self, context, text):
+        try:
+            context.workspace.status_text_set(text)
+        except AttributeError:
+            pass
+
+    def _cleanup(self, context):
+        wm = context.window_manager
+        if getattr(self, "_timer", None) is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        self._status(context, None)
+
+    def modal(self, context, event):
+        state = self._state
+        if event.type == 'ESC' and event.value == 'PRESS':
+            state["cancel"] = True
+            self._thread.join()
+            self._cleanup(context)
+            self.report({'WARNING'}, "Synthesis cancelled; the scene is unchanged")
+            return {'CANCELLED'}
+        if event.type != 'TIMER':
+            return {'PASS_THROUGH'}
+        i, n = state["i"], state["n"]
+        context.window_manager.progress_update(100.0 * i / max(n, 1))
+        self._status(context, "Dancing Points: synthesising frame {:d} / {:d} (Esc to cancel)".format(i, n))
+        if self._thread.is_alive():
+            return {'RUNNING_MODAL'}
+        self._cleanup(context)
+        if state["error"] == "cancelled":
+            self.report({'WARNING'}, "Synthesis cancelled; the scene is unchanged")
+            return {'CANCELLED'}
+        if state["error"] is not None:
+            return self._error(state["error"])
+        coll = bpy.data.collections.get(self._coll_name)
+        if coll is None:
+            self.report({'ERROR'}, "the take '{:s}' was removed during synthesis".format(self._coll_name))
+            return {'CANCELLED'}
+        return self._finish(context, coll, state["duet"], time.perf_counter() - self._t0)
+
+    def cancel(self, context):  # the window closed or the file was reloaded
+        state = getattr(self, "_state", None)
+        if state is not None:
+            state["cancel"] = True
+            self._thread.join()
+        self._cleanup(context)
+
+
+classes = (DANCING_POINTS_OT_synthesize,)
+register, unregister = bpy.utils.register_classes_factory(classes)

@@ -1,0 +1,543 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Import a take (``bpy.ops.dancing_points.import_take``, SPEC §8) and read it back.
+
+A take in the scene is a collection "DP Take <name>" with three empties
+(Head, LeftHand, RightHand) keyframed once per 30 Hz sample in Blender's Z-up
+space: location, rotation (quaternion, device-to-world as in the file) and an
+animated ``["dp_tracked"]`` flag (0 where the file had lost tracking; the
+location and rotation then hold the last tracked value).
+
+* ``.csv`` takes and CMU ``.amc`` files are read by the core (``take.load_input``).
+* ``.bvh`` and ``.fbx`` files go through Blender's own importers; the three
+  points are then read off the imported rig, which is removed again:
+  head point = head of bone ``Head``; hands = head of ``LeftFingerBase`` /
+  ``RightFingerBase`` (the end of ``lwrist``) for the CMU-converted naming, else
+  head of ``LeftHand`` / ``RightHand`` (the wrist; Mixamo and generic namings).
+  Device rotations: the bone's world rotation relative to its rest pose
+  (``Rpose · Rrestᵀ``, independent of bone roll), converted to motion space;
+  the head device is that of bone ``Head`` composed with Ry(180°)
+  (``take.take_from_tracked``: the device looks along −Z, the skull faces +Z),
+  so a rig whose rest pose is the SPEC's (upright, facing +Z in the file's
+  Y-up space: the CMU conversion, Mixamo's T-pose) gives SPEC §3 head
+  quaternions exactly. When the rest pose is not that (e.g. an FBX whose rest
+  pose is some frame of the dance, as Blender's FBX exporter writes an
+  unskinned armature), each bone's facing is calibrated against the body
+  (hips, else shoulders) over the clip instead, with a warning
+  (``blender_math.rig_rotations``).
+
+Synthesis reads the take back from the empties (:func:`take_from_collection`),
+so keyframe edits made in Blender count.
+"""
+
+import os
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy_extras.io_utils import ImportHelper, axis_conversion, orientation_helper
+
+from ..dancing_points_addon import blender_math as bm
+from ..dancing_points_addon.errors import InputError
+from ..dancing_points_addon.resample import resample_take
+from ..dancing_points_addon.take import Take, load_input, take_from_tracked
+from . import compat
+from .props import (DEVICE_OBJECT_NAMES, DEVICE_PROP, DEVICES, KIND_TAKE, TRACKED_PROP, device_objects)
+
+FILE_TYPES = (".csv", ".bvh", ".fbx", ".amc")
+NET_FPS = 30.0
+
+
+class TakeError(Exception):
+    """A one-line, user-facing problem with a take in the scene."""
+
+
+# --------------------------------------------------------------------------- rig reading
+
+def _norm(name):
+    import re
+    base = re.split(r"[:|]", name)[-1]
+    return re.sub(r"[\s_\-.]", "", base).lower()
+
+
+_HAND_ALIASES = {
+    "lhand": ("lefthand", "lhand", "handl", "handleft", "leftwrist", "lwrist", "wristl"),
+    "rhand": ("righthand", "rhand", "handr", "handright", "rightwrist", "rwrist", "wristr"),
+}
+
+
+def rig_tracked_bones(bone_names):
+    """``(point bones, rotation bones, naming)`` for head, lhand, rhand; the
+    point is the head of the point bone. None when the rig is not recognised."""
+    idx = {}
+    for n in bone_names:
+        idx.setdefault(_norm(n), n)
+    if "head" not in idx:
+        return None
+    if all(k in idx for k in ("leftfingerbase", "rightfingerbase", "lefthand", "righthand")):
+        return ((idx["head"], idx["leftfingerbase"], idx["rightfingerbase"]),
+                (idx["head"], idx["lefthand"], idx["righthand"]), "cmu")
+    hands = []
+    for dev in ("lhand", "rhand"):
+        found = next((idx[a] for a in _HAND_ALIASES[dev] if a in idx), None)
+        if found is None:
+            return None
+        hands.append(found)
+    bones = (idx["head"], hands[0], hands[1])
+    naming = "mixamo" if any(n.lower().startswith("mixamorig") for n in bone_names) else "generic"
+    return bones, bones, naming
+
+
+_SIDE_ALIASES = (
+    (("leftupleg", "lefthip", "lthigh", "thighl", "leftthigh", "upperlegl", "lupleg", "lhip", "hipl"),
+     ("rightupleg", "righthip", "rthigh", "thighr", "rightthigh", "upperlegr", "rupleg", "rhip", "hipr")),
+    (("leftarm", "leftupperarm", "upperarml", "lupperarm", "larm", "leftshoulder", "lshoulder"),
+     ("rightarm", "rightupperarm", "upperarmr", "rupperarm", "rarm", "rightshoulder", "rshoulder")),
+)
+
+
+def rig_side_bones(bone_names):
+    """A left and a right bone (hips, else shoulders) whose heads give the
+    body's left-right direction, or None."""
+    idx = {}
+    for n in bone_names:
+        idx.setdefault(_norm(n), n)
+    for left, right in _SIDE_ALIASES:
+        lb = next((idx[a] for a in left if a in idx), None)
+        rb = next((idx[a] for a in right if a in idx), None)
+        if lb is not None and rb is not None:
+            return lb, rb
+    return None
+
+
+def _snapshot():
+    colls = ("objects", "meshes", "armatures", "actions", "materials", "images", "textures",
+             "cameras", "lights", "collections", "node_groups")
+    return {c: set(getattr(bpy.data, c)[:]) for c in colls}
+
+
+def _remove_new(before):
+    new = []
+    for c, old in before.items():
+        new.extend(x for x in getattr(bpy.data, c)[:] if x not in old)
+    if new:
+        bpy.data.batch_remove(new)
+
+
+def _scene_state(scene):
+    r = scene.render
+    return (r.fps, r.fps_base, scene.frame_start, scene.frame_end, scene.frame_current)
+
+
+def _restore_scene_state(scene, state):
+    r = scene.render
+    r.fps, r.fps_base, scene.frame_start, scene.frame_end, frame = state
+    scene.frame_set(frame)
+
+
+def _precheck(path, ext):
+    """Reject a malformed file with a one-line message before Blender's importer
+    sees it (the core BVH parser names the line; FBX: binary files only)."""
+    if ext == ".bvh":
+        from ..dancing_points_addon import bvh as core_bvh
+        try:
+            data = core_bvh.parse_bvh(path)
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(path, f"cannot read BVH file ({type(exc).__name__}: {exc})") from None
+        if rig_tracked_bones(data.names) is None:
+            raise InputError(path, "cannot find the head and hand joints: expected the CMU-converted naming "
+                                   "(Head, LeftHand, LeftFingerBase, ...) or Mixamo (mixamorig:Head, "
+                                   "mixamorig:LeftHand, ...)")
+    elif ext == ".fbx":
+        try:
+            with open(path, "rb") as fh:
+                magic = fh.read(18)
+        except OSError as exc:
+            raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
+        if magic != b"Kaydara FBX Binary":
+            raise InputError(path, "not a binary FBX file (Blender's importer reads binary FBX only)")
+
+
+def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up='Y', units='AUTO'):
+    """A BVH/FBX file through Blender's importer -> :class:`Take` (motion space).
+
+    Everything the importer made is removed again and the scene's frame rate,
+    range and current frame are restored, whatever happens."""
+    _precheck(path, ext)
+    scene = context.scene
+    before = _snapshot()
+    state = _scene_state(scene)
+    try:
+        try:
+            if ext == ".bvh":
+                res = bpy.ops.import_anim.bvh(filepath=path, axis_forward=axis_forward, axis_up=axis_up,
+                                              update_scene_fps=True, update_scene_duration=False,
+                                              use_fps_scale=False, global_scale=1.0)
+            else:
+                res = bpy.ops.import_scene.fbx(filepath=path, use_anim=True, ignore_leaf_bones=False,
+                                               automatic_bone_orientation=False)
+        except RuntimeError as exc:  # the importer's own error report
+            msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "import failed"
+            raise InputError(path, f"Blender's {ext[1:].upper()} importer failed: {msg}") from None
+        if 'FINISHED' not in res:
+            raise InputError(path, f"Blender's {ext[1:].upper()} importer could not read the file")
+        file_fps = scene.render.fps / scene.render.fps_base
+        arms = [o for o in bpy.data.objects if o not in before["objects"] and o.type == 'ARMATURE']
+        found = None
+        for arm in arms:
+            spec = rig_tracked_bones([b.name for b in arm.data.bones])
+            if spec is not None:
+                found = (arm, spec)
+                break
+        if found is None:
+            raise InputError(path, "no armature with a Head bone and hand bones (expected the CMU-converted "
+                                   "naming: Head, LeftHand, LeftFingerBase, ... or Mixamo: mixamorig:Head, "
+                                   "mixamorig:LeftHand, ...)")
+        arm, (point_bones, rot_bones, naming) = found
+        side_bones = rig_side_bones([b.name for b in arm.data.bones])
+        action = arm.animation_data.action if arm.animation_data else None
+        if action is None:
+            raise InputError(path, "the file has no animation")
+        f0, f1 = (int(round(x)) for x in action.frame_range)
+        frames = np.arange(f0, f1 + 1)
+        if len(frames) < 2:
+            raise InputError(path, f"only {len(frames)} frame(s); a take needs at least 2")
+        # Rest pose (world, Blender space): bone frames, size, and whether it is the SPEC rest pose.
+        mw = np.array(arm.matrix_world)
+        bones = arm.data.bones
+
+        def rest_point(name):
+            return (mw @ np.array([*bones[name].head_local, 1.0]))[:3]
+
+        rest_rot = np.stack([(mw @ np.array(bones[b].matrix_local))[:3, :3] for b in rot_bones])
+        ends = np.array([[*bones[b].head_local, 1.0] for b in bones.keys()]
+                        + [[*bones[b].tail_local, 1.0] for b in bones.keys()]) @ mw.T
+        height = rest_point(point_bones[0])[2] - ends[:, 2].min()
+        scale = bm.unit_scale_for_height(height) if units == 'AUTO' else 1.0
+        rest_ok = side_bones is not None and bm.rest_faces_spec(
+            bm.to_motion(rest_point(side_bones[0])), bm.to_motion(rest_point(side_bones[1])),
+            bm.to_motion(rest_point(point_bones[0])))
+        if side_bones is None:
+            side_bones = (point_bones[1], point_bones[2])  # only used if the rest pose is unusable
+        T = len(frames)
+        pts = np.empty((T, 5, 3))
+        world = np.empty((T, 3, 3, 3))
+        depsgraph = context.evaluated_depsgraph_get()
+        names = tuple(point_bones) + tuple(side_bones)
+        for i, f in enumerate(frames):
+            scene.frame_set(int(f))
+            ev = arm.evaluated_get(depsgraph)
+            mw_t = np.array(ev.matrix_world)
+            pb = ev.pose.bones
+            for d, name in enumerate(names):
+                pts[i, d] = (mw_t @ np.array([*pb[name].head, 1.0]))[:3]
+            for d in range(3):
+                world[i, d] = (mw_t @ np.array(pb[rot_bones[d]].matrix))[:3, :3]
+        pts_m = bm.to_motion(pts * scale)
+        # Bone frames (columns = local axes in world) to motion space: C^T · W.
+        world_m = bm.C.T @ world
+        rest_m = bm.C.T @ rest_rot
+        rot = bm.rig_rotations(world_m, rest_m, pts_m[:, 3], pts_m[:, 4], rest_ok)
+        rate = float(input_fps) if input_fps and input_fps > 0 else file_fps
+        time = (frames - frames[0]) / rate
+        meta = {"source_naming": naming}
+        take = take_from_tracked(time, pts_m[:, :3], rot[:, 0], rot[:, 1], rot[:, 2], meta, path)
+        take.meta["source_fps"] = rate
+        if not rest_ok:
+            take.meta["rotation_estimate"] = "body"
+        return take
+    finally:
+        _remove_new(before)
+        _restore_scene_state(scene, state)
+
+
+def load_any(context, path, input_fps=0.0, height=0.0, axis_forward='-Z', axis_up='Y', units='AUTO'):
+    """Any supported file as a :class:`Take` (motion space, source rate)."""
+    path = bpy.path.abspath(path) if path else path
+    if not path:
+        raise InputError("<no file>", "no file given")
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in FILE_TYPES:
+        raise InputError(path, f"unsupported file type {ext or '(no extension)'!r} (expected "
+                               f"{', '.join(FILE_TYPES)})")
+    if not os.path.exists(path):
+        raise InputError(path, "no such file")
+    if os.path.isdir(path):
+        raise InputError(path, "is a folder, not a take file")
+    if ext in (".bvh", ".fbx"):
+        take = read_rig_take(context, path, ext, input_fps, axis_forward, axis_up, units)
+    else:
+        take = load_input(path, input_fps=input_fps if input_fps and input_fps > 0 else None)
+    if height and height > 0:
+        take.meta["height_m"] = float(height)
+    if take.n_frames < 2:
+        raise InputError(path, f"only {take.n_frames} frame(s); a take needs at least 2")
+    if not take.valid.any(axis=1).any():
+        raise InputError(path, "no tracked samples: every device is lost on every row")
+    return take
+
+
+# --------------------------------------------------------------------------- take <-> empties
+
+def build_take_collection(context, take30, name, frame_start=1, conv=bm.C, settings=None):
+    """The collection "DP Take <name>" with the three keyframed empties.
+
+    ``take30``: a take at 30 Hz (motion space, or the file's axes with ``conv``
+    the file -> Blender matrix). ``settings``: values for ``coll.dancing_points``."""
+    T = take30.n_frames
+    frames = frame_start + np.arange(T, dtype=np.float64)
+    coll = bpy.data.collections.new("DP Take " + name)
+    try:
+        context.scene.collection.children.link(coll)
+        s = coll.dancing_points
+        s.kind = KIND_TAKE
+        for k, v in (settings or {}).items():
+            setattr(s, k, v)
+        s.frame_start = int(frame_start)
+        s.n_frames = T
+        s.fps = NET_FPS
+        s.t0 = float(take30.time[0])
+        valid = take30.valid
+        objs = {}
+        for d, dev in enumerate(DEVICES):
+            obj = bpy.data.objects.new(DEVICE_OBJECT_NAMES[dev], None)
+            obj.empty_display_type = 'SPHERE' if dev == "head" else 'ARROWS'
+            obj.empty_display_size = 0.12 if dev == "head" else 0.08
+            obj.rotation_mode = 'QUATERNION'
+            obj[DEVICE_PROP] = dev
+            obj[TRACKED_PROP] = 1.0
+            coll.objects.link(obj)
+            objs[dev] = obj
+            ok = valid[:, d]
+            loc = bm.fill_gaps(bm.to_blender(take30.positions[:, d], conv), ok)
+            q = bm.fill_gaps(bm.quat_to_blender(take30.quats[:, d], conv), ok)
+            q = bm.continuous_quats(q)
+            obj.location = loc[0]
+            obj.rotation_quaternion = q[0]
+            action, slot = compat.new_action_for(obj, "DP {:s} {:s}".format(name, obj.name))
+            group = DEVICE_OBJECT_NAMES[dev]
+            for i in range(3):
+                compat.write_keys(compat.ensure_fcurves(action, slot, "location", i, group), frames, loc[:, i])
+            for i in range(4):
+                compat.write_keys(compat.ensure_fcurves(action, slot, "rotation_quaternion", i, group),
+                                  frames, q[:, i])
+            compat.write_keys(compat.ensure_fcurves(action, slot, '["%s"]' % TRACKED_PROP, 0, group),
+                              frames, ok.astype(np.float64), interpolation='CONSTANT')
+        return coll, objs
+    except Exception:
+        _remove_collection(coll)
+        raise
+
+
+def _remove_collection(coll):
+    ids = [coll]
+    for obj in coll.all_objects:
+        ids.append(obj)
+        if obj.animation_data and obj.animation_data.action:
+            ids.append(obj.animation_data.action)
+    bpy.data.batch_remove(ids)
+
+
+def _device_world(obj, context, frames):
+    """Location (T, 3), quaternion (T, 4) and tracked flag (T,) of a device empty
+    at ``frames``, Blender space."""
+    T = len(frames)
+    needs_eval = (obj.parent is not None or len(obj.constraints) > 0 or obj.rotation_mode != 'QUATERNION'
+                  or (obj.animation_data is not None and len(obj.animation_data.drivers) > 0))
+    action, slot = compat.assigned_action(obj)
+    tracked = np.full(T, float(obj.get(TRACKED_PROP, 1.0)))
+    fc = compat.find_fcurve(action, slot, '["%s"]' % TRACKED_PROP, 0)
+    if fc is not None and len(fc.keyframe_points):
+        tracked = compat.sample_fcurve(fc, frames)
+    if needs_eval:
+        scene = context.scene
+        cur = scene.frame_current
+        loc = np.empty((T, 3))
+        quat = np.empty((T, 4))
+        try:
+            depsgraph = context.evaluated_depsgraph_get()
+            for i, f in enumerate(frames):
+                scene.frame_set(int(f))
+                m = obj.evaluated_get(depsgraph).matrix_world
+                loc[i] = m.to_translation()
+                quat[i] = m.to_quaternion()
+        finally:
+            scene.frame_set(cur)
+        return loc, quat, tracked
+    loc = np.tile(np.array(obj.location), (T, 1))
+    quat = np.tile(np.array(obj.rotation_quaternion), (T, 1))
+    for i in range(3):
+        fc = compat.find_fcurve(action, slot, "location", i)
+        if fc is not None and len(fc.keyframe_points):
+            loc[:, i] = compat.sample_fcurve(fc, frames)
+    for i in range(4):
+        fc = compat.find_fcurve(action, slot, "rotation_quaternion", i)
+        if fc is not None and len(fc.keyframe_points):
+            quat[:, i] = compat.sample_fcurve(fc, frames)
+    return loc, quat, tracked
+
+
+def take_from_collection(context, coll):
+    """The take held by a take collection, read from its empties' animation:
+    a 30 Hz :class:`Take` in motion space (Blender Z up -> Y up)."""
+    s = coll.dancing_points
+    objs = device_objects(coll)
+    missing = [DEVICE_OBJECT_NAMES[d] for d in DEVICES if d not in objs]
+    if missing:
+        raise TakeError("take '{:s}' has no {:s} empty (objects carry a '{:s}' property)".format(
+            coll.name, " or ".join(missing), DEVICE_PROP))
+    T = int(s.n_frames)
+    if T < 2:
+        raise TakeError("take '{:s}' has {:d} frame(s); a take needs at least 2".format(coll.name, T))
+    frames = s.frame_start + np.arange(T, dtype=np.float64)
+    pos = np.empty((T, 3, 3))
+    quats = np.empty((T, 3, 4))
+    for d, dev in enumerate(DEVICES):
+        loc, q, tracked = _device_world(objs[dev], context, frames)
+        q = q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12)
+        lost = tracked < 0.5
+        pos[:, d] = bm.to_motion(loc)
+        quats[:, d] = bm.quat_to_motion(q)
+        pos[lost, d] = np.nan
+        quats[lost, d] = np.nan
+    if not np.isfinite(pos).all(-1).any():
+        raise TakeError("take '{:s}' has no tracked samples".format(coll.name))
+    time = s.t0 + np.arange(T) / float(s.fps or NET_FPS)
+    meta = {}
+    if s.height > 0:
+        meta["height_m"] = float(s.height)
+    return Take(time, pos, quats, meta, s.source)
+
+
+# --------------------------------------------------------------------------- operator
+
+@orientation_helper(axis_forward='-Z', axis_up='Y')
+class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
+    """Import a three-point take (.csv), or the head and hands of a BVH, FBX or CMU AMC motion, as a take"""
+
+    bl_idname = "dancing_points.import_take"
+    bl_label = "Import Dancing Points Take"
+    bl_options = {'REGISTER', 'UNDO', 'PRESET'}
+
+    filename_ext = ".csv"
+    filter_glob: StringProperty(default="*.csv;*.bvh;*.fbx;*.amc", options={'HIDDEN'})
+
+    frame_start: IntProperty(name="Start Frame", description="Scene frame of the take's first sample", default=1)
+    input_fps: FloatProperty(
+        name="Input FPS", default=0.0, min=0.0, soft_max=240.0,
+        description="Frame rate of the file's rows (0: from the file: its time column, BVH Frame Time, "
+                    "FBX frame rate, AMC 60/120 Hz)",
+    )
+    height: FloatProperty(
+        name="Leader Height", default=0.0, min=0.0, soft_max=2.5, unit='LENGTH', precision=3,
+        description="Standing height of the leading dancer (0: the file's height_m, else estimated)",
+    )
+    units: EnumProperty(
+        name="Units", default='AUTO',
+        items=(('AUTO', "Automatic", "BVH/FBX: scale the rig to a human size (metres, CMU units, inches, "
+                                     "centimetres, millimetres)"),
+               ('FILE', "As Imported", "BVH/FBX: use the importer's units (1 unit = 1 m)")),
+    )
+    update_scene_fps: BoolProperty(name="Update Scene FPS", default=True,
+                                   description="Set the scene to the take's 30 fps")
+    update_scene_duration: BoolProperty(name="Update Scene Duration", default=True,
+                                        description="Set the scene's frame range to the take")
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        for prop in ("frame_start", "input_fps", "height", "units", "update_scene_fps",
+                     "update_scene_duration", "axis_forward", "axis_up"):
+            layout.prop(self, prop)
+
+    def invoke(self, context, event):
+        if self.filepath and hasattr(self, "invoke_popup"):  # drag and drop (FileHandler)
+            return self.invoke_popup(context)
+        return ImportHelper.invoke(self, context, event)
+
+    def execute(self, context):
+        try:
+            coll = self.import_file(context)
+        except (InputError, TakeError) as exc:
+            self.report({'ERROR'}, str(exc).splitlines()[0] if str(exc) else "import failed")
+            return {'CANCELLED'}
+        except Exception as exc:  # an unexpected failure: one line to the user
+            self.report({'ERROR'}, "Dancing Points import failed: {:s}: {:s}".format(
+                type(exc).__name__, str(exc).splitlines()[0] if str(exc) else ""))
+            return {'CANCELLED'}
+        self.report({'INFO'}, "Imported take '{:s}' ({:d} frames at 30 fps)".format(
+            coll.name, coll.dancing_points.n_frames))
+        return {'FINISHED'}
+
+    def import_file(self, context):
+        path = bpy.path.abspath(self.filepath)
+        ext = os.path.splitext(path)[1].lower()
+        conv = np.array(axis_conversion(from_forward=self.axis_forward, from_up=self.axis_up).to_3x3())
+        take = load_any(context, path, self.input_fps, self.height, self.axis_forward, self.axis_up, self.units)
+        source_fps = float(take.meta.pop("source_fps", 0.0))
+        estimated = take.meta.pop("rotation_estimate", None) is not None
+        take.meta.pop("source_naming", None)
+        if not source_fps and take.n_frames > 1:
+            source_fps = float((take.n_frames - 1) / max(take.time[-1] - take.time[0], 1e-9))
+        take30 = resample_take(take, NET_FPS)
+        if take30.n_frames < 2:
+            raise InputError(path, "shorter than two 30 Hz frames")
+        if ext in (".bvh", ".fbx"):
+            conv = bm.C  # the rig was read in Blender's space already; it is motion space now
+        name = os.path.splitext(os.path.basename(path))[0]
+        settings = dict(source=path, source_type=ext[1:], height=float(take.height or 0.0),
+                        input_fps=float(self.input_fps), source_fps=source_fps,
+                        axis_forward=self.axis_forward, axis_up=self.axis_up)
+        coll, objs = build_take_collection(context, take30, name, self.frame_start, conv, settings)
+        scene = context.scene
+        if self.update_scene_fps:
+            scene.render.fps = int(NET_FPS)
+            scene.render.fps_base = 1.0
+        if self.update_scene_duration:
+            scene.frame_start = self.frame_start
+            scene.frame_end = self.frame_start + take30.n_frames - 1
+        scene.dancing_points.take = coll
+        if estimated:
+            self.report({'WARNING'}, "{:s}: the rig's rest pose is not a T-pose facing forward; the head "
+                                     "orientation was estimated from the hips".format(os.path.basename(path)))
+        for obj in context.view_layer.objects:
+            if obj.select_get():
+                obj.select_set(False)
+        head = objs["head"]
+        if head.name in context.view_layer.objects:
+            head.select_set(True)
+            context.view_layer.objects.active = head
+        return coll
+
+
+class DANCING_POINTS_FH_import_take(bpy.types.FileHandler):
+    bl_idname = "DANCING_POINTS_FH_import_take"
+    bl_label = "Dancing Points take"
+    bl_import_operator = "dancing_points.import_take"
+    bl_file_extensions = ";".join(FILE_TYPES)
+
+    @classmethod
+    def poll_drop(cls, context):
+        return context.area is not None and context.area.type in ('VIEW_3D', 'OUTLINER')
+
+
+def menu_func_import(self, context):
+    self.layout.operator(DANCING_POINTS_OT_import_take.bl_idname,
+                         text="Dancing Points take (.csv, .bvh, .fbx, .amc)")
+
+
+classes = (DANCING_POINTS_OT_import_take, DANCING_POINTS_FH_import_take)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.TOPBAR_MT_file_import.append(menu_func_import)
+
+
+def unregister():
+    bpy.types.TOPBAR_MT_file_import.remove(menu_func_import)
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
