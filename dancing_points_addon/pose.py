@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .representation import cross, norm
 from .skeleton import PARENTS
 
 N = len(PARENTS)
@@ -33,8 +34,8 @@ def bone_vectors_from_pose(positions: np.ndarray, rotations: np.ndarray) -> np.n
 
 def _align(u, v):
     """Rotations ``(…, 3, 3)`` taking unit vectors ``u`` to ``v`` by the shortest arc."""
-    k = np.cross(u, v)
-    c = np.sum(u * v, axis=-1)
+    k = cross(u, v)
+    c = np.einsum("...i,...i->...", u, v)
     kx = np.zeros(u.shape[:-1] + (3, 3))
     kx[..., 0, 1], kx[..., 0, 2] = -k[..., 2], k[..., 1]
     kx[..., 1, 0], kx[..., 1, 2] = k[..., 2], -k[..., 0]
@@ -46,9 +47,9 @@ def _align(u, v):
 
 def recover_pose(positions: np.ndarray, rotations: np.ndarray, bone_vectors: np.ndarray):
     """Consistent pose ``(…, 31, 3)``, ``(…, 31, 3, 3)`` from network outputs."""
-    lengths = np.linalg.norm(bone_vectors, axis=-1)
+    lengths = norm(bone_vectors)
     d = positions - positions[..., _PAR, :]
-    n = np.linalg.norm(d, axis=-1, keepdims=True)
+    n = norm(d)[..., None]
     rest_dir = bone_vectors / np.maximum(lengths[:, None], 1e-12)
     # Direction from positions; a collapsed bone falls back on its rotation.
     rot_dir = np.einsum("...nab,nb->...na", rotations, rest_dir)

@@ -20,6 +20,22 @@ CONTACT_SPEED = 0.30  # m/s (SPEC §6)
 FLOOR_PERCENTILE = 5.0
 
 
+def norm(x: np.ndarray) -> np.ndarray:
+    """Euclidean norm over the last axis (``np.linalg.norm`` costs more on small arrays)."""
+    return np.sqrt(np.einsum("...i,...i->...", x, x))
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (cheaper than ``np.cross`` on small arrays)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
 def device_rotation(head_bone_rotation: np.ndarray) -> np.ndarray:
     """Head device orientation from the global rotation of the ``head`` bone."""
     return head_bone_rotation @ DEVICE_FROM_HEAD
@@ -104,7 +120,10 @@ def root_relative(ref: np.ndarray, root: np.ndarray) -> np.ndarray:
     z = s * dx + c * dz
     # heading difference as a unit complex number: o_root · conj(o_ref)
     cr, sr = root[..., 2], root[..., 3]
-    return np.stack([x, z, cr * c + sr * s, sr * c - cr * s], axis=-1)
+    out = np.empty(np.broadcast_shapes(ref.shape, root.shape))
+    out[..., 0], out[..., 1] = x, z
+    out[..., 2], out[..., 3] = cr * c + sr * s, sr * c - cr * s
+    return out
 
 
 def root_compose(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
@@ -116,7 +135,10 @@ def root_compose(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
     co, so = cr * c - sr * s, sr * c + cr * s
     n = np.sqrt(co * co + so * so)
     n = np.where(n > 0, n, 1.0)
-    return np.stack([x, z, co / n, so / n], axis=-1)
+    out = np.empty(np.broadcast_shapes(ref.shape, rel.shape))
+    out[..., 0], out[..., 1] = x, z
+    out[..., 2], out[..., 3] = co / n, so / n
+    return out
 
 
 def floor_levels(foot_heights: np.ndarray) -> np.ndarray:
@@ -150,8 +172,11 @@ def rot6d(rot: np.ndarray) -> np.ndarray:
 def rot6d_to_matrix(x: np.ndarray) -> np.ndarray:
     """Gram–Schmidt back to rotation matrices: ``(…, 6) -> (…, 3, 3)``."""
     a, b = x[..., 0:3], x[..., 3:6]
-    e1 = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
-    b = b - np.sum(e1 * b, axis=-1, keepdims=True) * e1
-    e2 = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-12)
-    e3 = np.cross(e1, e2)
-    return np.stack([e1, e2, e3], axis=-1)
+    out = np.empty(x.shape[:-1] + (3, 3))
+    e1 = a / np.maximum(norm(a), 1e-12)[..., None]
+    b = b - np.einsum("...i,...i->...", e1, b)[..., None] * e1
+    e2 = b / np.maximum(norm(b), 1e-12)[..., None]
+    out[..., :, 0] = e1
+    out[..., :, 1] = e2
+    out[..., :, 2] = cross(e1, e2)
+    return out
