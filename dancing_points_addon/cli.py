@@ -161,9 +161,55 @@ def _parser_synthesize(sub) -> None:
     p.set_defaults(func=cmd_synthesize)
 
 
+# --------------------------------------------------------------------------- benchmark
+
+def cmd_benchmark(args) -> int:
+    from .benchmark import report, run
+
+    res = run(frames=args.frames, threads=args.threads, model_dir=args.models,
+              foot_lock=not args.no_foot_lock, hand_ik=args.hand_ik)
+    print(report(res))
+    return EXIT_OK
+
+
+def _parser_benchmark(sub) -> None:
+    p = sub.add_parser("benchmark", help="per character-frame latency of the frame-by-frame loop",
+                       description="Time the frame-by-frame loop on the embedded sample take (batch 1): "
+                                   "median and p99 per character-frame, split into features, networks "
+                                   "and pose recovery, beside the compute floor of the same weights.")
+    p.add_argument("--frames", type=int, default=2000, metavar="N", help="timed duet frames (default 2000)")
+    p.add_argument("--threads", type=int, default=1, metavar="N", help="onnxruntime threads (default 1)")
+    p.add_argument("--models", default=None, metavar="DIR", help="folder with the ONNX models")
+    p.add_argument("--no-foot-lock", action="store_true")
+    p.add_argument("--hand-ik", action="store_true")
+    p.set_defaults(func=cmd_benchmark)
+
+
+# --------------------------------------------------------------------------- batch
+
+def cmd_batch(args) -> int:
+    from .batch import run
+
+    return run(args)
+
+
+def _parser_batch(sub) -> None:
+    from .batch import add_arguments
+
+    p = sub.add_parser("batch", help="many takes (files or folders) -> one duet each, in parallel",
+                       description="Convert every take (.csv, .bvh, .amc; folders are searched "
+                                   "recursively) to a baked duet, one output per take named after it, "
+                                   "on --jobs worker processes. A bad file is reported and skipped; the "
+                                   "exit status is 1 if any file failed, 130 when interrupted (Ctrl-C: "
+                                   "no partial outputs are left; --resume finishes the rest). "
+                                   "--format blend/fbx and --render need the bpy module.")
+    add_arguments(p)
+    p.set_defaults(func=cmd_batch)
+
+
 # --------------------------------------------------------------------------- main
 
-PARSERS = [_parser_extract, _parser_synthesize]
+PARSERS = [_parser_extract, _parser_synthesize, _parser_benchmark, _parser_batch]
 
 
 def build_parser() -> argparse.ArgumentParser:

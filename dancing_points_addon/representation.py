@@ -89,25 +89,21 @@ def _origin(root):
 
 def to_local(points: np.ndarray, root: np.ndarray) -> np.ndarray:
     """World points ``(…, N, 3)`` into the frames ``root (…, 4)``."""
-    r = root_rotation(root)
-    return np.einsum("...ba,...nb->...na", r, points - _origin(root)[..., None, :])
+    return (points - _origin(root)[..., None, :]) @ root_rotation(root)
 
 
 def to_world(points: np.ndarray, root: np.ndarray) -> np.ndarray:
     """Root-frame points ``(…, N, 3)`` to world."""
-    r = root_rotation(root)
-    return np.einsum("...ab,...nb->...na", r, points) + _origin(root)[..., None, :]
+    return points @ np.swapaxes(root_rotation(root), -1, -2) + _origin(root)[..., None, :]
 
 
 def rot_to_local(rot: np.ndarray, root: np.ndarray) -> np.ndarray:
     """World rotations ``(…, N, 3, 3)`` into the root frames."""
-    r = root_rotation(root)
-    return np.einsum("...ba,...nbc->...nac", r, rot)
+    return np.swapaxes(root_rotation(root), -1, -2)[..., None, :, :] @ rot
 
 
 def rot_to_world(rot: np.ndarray, root: np.ndarray) -> np.ndarray:
-    r = root_rotation(root)
-    return np.einsum("...ab,...nbc->...nac", r, rot)
+    return root_rotation(root)[..., None, :, :] @ rot
 
 
 def root_relative(ref: np.ndarray, root: np.ndarray) -> np.ndarray:
@@ -120,7 +116,7 @@ def root_relative(ref: np.ndarray, root: np.ndarray) -> np.ndarray:
     z = s * dx + c * dz
     # heading difference as a unit complex number: o_root · conj(o_ref)
     cr, sr = root[..., 2], root[..., 3]
-    out = np.empty(np.broadcast_shapes(ref.shape, root.shape))
+    out = np.empty(x.shape + (4,))
     out[..., 0], out[..., 1] = x, z
     out[..., 2], out[..., 3] = cr * c + sr * s, sr * c - cr * s
     return out
@@ -133,11 +129,10 @@ def root_compose(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
     z = ref[..., 1] - s * rel[..., 0] + c * rel[..., 1]
     cr, sr = rel[..., 2], rel[..., 3]
     co, so = cr * c - sr * s, sr * c + cr * s
-    n = np.sqrt(co * co + so * so)
-    n = np.where(n > 0, n, 1.0)
-    out = np.empty(np.broadcast_shapes(ref.shape, rel.shape))
+    n = 1.0 / np.maximum(np.sqrt(co * co + so * so), 1e-300)
+    out = np.empty(x.shape + (4,))
     out[..., 0], out[..., 1] = x, z
-    out[..., 2], out[..., 3] = co / n, so / n
+    out[..., 2], out[..., 3] = co * n, so * n
     return out
 
 

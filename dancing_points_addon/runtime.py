@@ -132,6 +132,7 @@ class Synthesizer:
         self.bone_vectors = {r: bone_vectors_from_pose(p[:93].reshape(31, 3),
                                                        rot6d_to_matrix(p[93:279].reshape(31, 6)))
                              for r, p in self.default_pose.items()}
+        self._bone_vectors = (self.bone_vectors["leader"], self.bone_vectors["follower"])
         self.reset()
 
     @staticmethod
@@ -211,8 +212,8 @@ class Synthesizer:
             self.hist_tracked[:] = tracked_s
             self.leader.place(root)
         else:
-            self.hist_roots = np.roll(self.hist_roots, -1, axis=0)
-            self.hist_tracked = np.roll(self.hist_tracked, -1, axis=0)
+            self.hist_roots[:-1] = self.hist_roots[1:].copy()
+            self.hist_tracked[:-1] = self.hist_tracked[1:].copy()
             self.hist_roots[-1] = root
             self.hist_tracked[-1] = tracked_s
         y = self.nets["mapping"](F.mapping_input(self.hist_roots[None], self.hist_tracked[None]))
@@ -227,16 +228,21 @@ class Synthesizer:
         self.prev_follower = (f_roots[0], f_tr[0])
         lp, lr, lc = self.leader.advance(lk_roots, lk_tr)
         fp, fr, fc = self.follower.advance(fk_roots, fk_tr)
-        lp, lr = recover_pose(lp, lr, self.bone_vectors["leader"])
-        fp, fr = recover_pose(fp, fr, self.bone_vectors["follower"])
-        if self._lockers is not None:
-            lp, lr = self._lockers[0].step(lp, lr, lc)
-            fp, fr = self._lockers[1].step(fp, fr, fc)
-        if self._effector is not None:
-            lp, lr = self._effector.step(lp, lr, tracked_s)
+        lp, lr = self._recover(0, lp, lr, lc, tracked_s)
+        fp, fr = self._recover(1, fp, fr, fc, None)
         self.t += 1
         inv = 1.0 / s
         return DuetFrame(lp * inv, lr, lc), DuetFrame(fp * inv, fr, fc)
+
+    def _recover(self, who, pos, rot, contacts, targets):
+        """Pose recovery (Appendix B) of dancer ``who`` (0 leader, 1 follower):
+        a consistent skeleton pose, foot locking, then head/wrist IK (leader)."""
+        pos, rot = recover_pose(pos, rot, self._bone_vectors[who])
+        if self._lockers is not None:
+            pos, rot = self._lockers[who].step(pos, rot, contacts)
+        if targets is not None and self._effector is not None:
+            pos, rot = self._effector.step(pos, rot, targets)
+        return pos, rot
 
     # mapping index of frame t − 1 + k for the keys k >= 2 (index 0 is frame t + 1)
     _OFF = F.TRACK_KEYS[1:] - 2

@@ -1,10 +1,14 @@
 """Export trained networks to ONNX with their feature layout as metadata.
 
 The exported tracker is the inference path only (estimator -> decoder) and
-keeps only the outputs the runtime reads: the first future key (the next
-frame). The exported mapping network keeps the future frames at the tracker's
-keys. Both are plain slices of the trained last layer, so ONNX and PyTorch
-agree on every kept output.
+computes only the outputs the runtime reads: the first future key (the next
+frame); its last layer is the trained one with the other keys' rows dropped,
+so ONNX and PyTorch agree on every kept output. The mapping network keeps its
+whole future second.
+
+Re-export from the training checkpoints (no retraining):
+
+    python -m training.export --checkpoints cache/checkpoints --out models
 """
 from __future__ import annotations
 
@@ -21,16 +25,6 @@ from dancing_points_addon import features as F
 from dancing_points_addon.skeleton import JOINT_NAMES
 
 OPSET = 17
-
-
-class _Sliced(nn.Module):
-    def __init__(self, model: nn.Module, keep: np.ndarray):
-        super().__init__()
-        self.model = model
-        self.register_buffer("keep", torch.as_tensor(keep, dtype=torch.long))
-
-    def forward(self, x):
-        return self.model(x).index_select(1, self.keep)
 
 
 def tracker_keep() -> np.ndarray:
@@ -52,7 +46,7 @@ def git_commit() -> str:
 def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None = None):
     """Write ``model`` (eval mode, CPU) as ONNX at ``path`` atomically."""
     keep = tracker_keep() if kind.startswith("tracker") else mapping_keep()
-    wrapped = _Sliced(model.cpu().eval(), keep).eval()
+    wrapped = model.cpu().eval().truncated(keep)
     dummy = torch.zeros(1, n_in)
     tmp = path + ".tmp"
     torch.onnx.export(wrapped, (dummy,), tmp, input_names=["x"], output_names=["y"],
@@ -79,3 +73,38 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
     onnx.save(m, tmp)
     os.replace(tmp, path)
     return path
+
+
+def main(argv=None):
+    import argparse
+
+    from .model import MappingNet, TrackingNet
+
+    ap = argparse.ArgumentParser(prog="python -m training.export", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoints", default="cache/checkpoints")
+    ap.add_argument("--out", default="models")
+    args = ap.parse_args(argv)
+    report = {}
+    rp = os.path.join(args.out, "training_report.json")
+    if os.path.exists(rp):
+        with open(rp) as f:
+            report = json.load(f).get("models", {})
+    for name in ("mapping", "tracker_leader", "tracker_follower"):
+        ck = torch.load(os.path.join(args.checkpoints, f"{name}.pt"), weights_only=False)
+        meta = dict(ck["meta"])
+        if name == "mapping":
+            m, n_in = MappingNet(F.MAP_IN, F.MAP_OUT, meta["hidden"]), F.MAP_IN
+        else:
+            m = TrackingNet(F.TRACK_IN, F.TRACK_OUT, meta["hidden"], pose_dim=F.POSE_DIM)
+            n_in = F.TRACK_IN
+            meta["role"] = name.split("_")[1]
+        m.load_state_dict(ck["state_dict"])
+        if name in report:
+            meta["train"] = report[name]
+        print("exported", export(m, name, os.path.join(args.out, f"{name}.onnx"), n_in, meta))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -80,6 +80,28 @@ class _Net(nn.Module):
     def forward(self, x):
         return self.ny.denorm(self._predict(self.nx.norm(x))) + self._base(x)
 
+    def output_layer(self) -> nn.Linear:
+        raise NotImplementedError
+
+    def truncated(self, keep) -> "_Net":
+        """A copy whose last layer computes only the outputs ``keep`` (a prefix
+        of whole keys for trackers): for inference, where later keys are unused."""
+        import copy
+
+        keep = torch.as_tensor(keep, dtype=torch.long)
+        m = copy.deepcopy(self).eval()
+        lin = m.output_layer()
+        new = nn.Linear(lin.in_features, len(keep))
+        with torch.no_grad():
+            new.weight.copy_(lin.weight[keep])
+            new.bias.copy_(lin.bias[keep])
+        m.set_output_layer(new)
+        m.ny = Normalizer(len(keep))
+        m.ny.mean.copy_(self.ny.mean[keep])
+        m.ny.std.copy_(self.ny.std[keep])
+        m.n_out = len(keep)
+        return m
+
 
 class MappingNet(_Net):
     """Leader's past 0.5 s of three points -> both dancers' future 1 s."""
@@ -93,6 +115,12 @@ class MappingNet(_Net):
 
     def _predict(self, xn):
         return self.net(xn)
+
+    def output_layer(self):
+        return self.net[-1]
+
+    def set_output_layer(self, lin):
+        self.net[-1] = lin
 
 
 class TrackingNet(_Net):
@@ -126,6 +154,12 @@ class TrackingNet(_Net):
     def _predict(self, xn):
         return self.decoder(torch.cat([self._latent(self.estimator(xn)), xn], dim=-1))
 
+    def output_layer(self):
+        return self.decoder[-1]
+
+    def set_output_layer(self, lin):
+        self.decoder[-1] = lin
+
 
 class VanillaTracker(_Net):
     """Ablation (a): encoder and decoder stacked as one MLP, no latent, L_rec only."""
@@ -139,3 +173,9 @@ class VanillaTracker(_Net):
 
     def _predict(self, xn):
         return self.net(xn)
+
+    def output_layer(self):
+        return self.net[-1][-1]
+
+    def set_output_layer(self, lin):
+        self.net[-1][-1] = lin

@@ -1,0 +1,129 @@
+"""Latency of the frame-by-frame loop, per character-frame, against a compute floor.
+
+    python -m dancing_points_addon benchmark [--frames 2000] [--threads 1]
+
+Runs the product loop (:class:`~.runtime.Synthesizer`, batch 1) over the
+embedded sample take, repeated to the frame count, timing every frame and
+splitting it into the networks (the three ONNX runs), pose recovery (rigid
+pose, foot locking, optional IK) and features (everything else: input
+cleaning, feature building, decoding). A duet frame holds two characters, so
+per character-frame = frame time / 2.
+
+The compute floor is the bare matrix–vector products of the same weights in
+numpy on the same machine (one ``W @ x`` per Linear layer of the three
+networks, no activations): what the networks' arithmetic costs at the least.
+"""
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from .runtime import MODEL_FILES, OnnxNet, Synthesizer
+
+SAMPLE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "samples", "sample_take.csv")
+
+
+class _Timed:
+    """Wraps a network and adds its run time to a shared clock."""
+
+    def __init__(self, net, clock):
+        self.net, self.clock = net, clock
+        self.meta = getattr(net, "meta", {})
+        self.path = getattr(net, "path", "")
+
+    def __call__(self, x):
+        t = time.perf_counter()
+        y = self.net(x)
+        self.clock[0] += time.perf_counter() - t
+        return y
+
+
+class _TimedSynth(Synthesizer):
+    def __init__(self, *a, clocks=None, **k):
+        self._clocks = clocks
+        super().__init__(*a, **k)
+
+    def _recover(self, who, pos, rot, contacts, targets):
+        t = time.perf_counter()
+        out = super()._recover(who, pos, rot, contacts, targets)
+        self._clocks["recovery"][0] += time.perf_counter() - t
+        return out
+
+
+def onnx_weights(path):
+    """The 2-D float initializers of an ONNX file, in graph order (needs ``onnx``)."""
+    import onnx
+    from onnx import numpy_helper
+
+    m = onnx.load(path)
+    mats = [numpy_helper.to_array(i) for i in m.graph.initializer]
+    return [w.astype(np.float32) for w in mats if w.ndim == 2 and min(w.shape) > 1]
+
+
+def compute_floor(model_dir, repeats=2000):
+    """Seconds per duet frame of the bare mat-vec products of all three networks
+    (the mapping once, each tracker once)."""
+    chain = []
+    for f in MODEL_FILES.values():
+        for w in onnx_weights(os.path.join(model_dir, f)):
+            # torch exports Linear as Gemm (W: out×in) or MatMul (W: in×out)
+            chain.append(np.ascontiguousarray(w))
+    xs = [np.random.default_rng(0).standard_normal(w.shape[1], dtype=np.float32) for w in chain]
+    for w, x in zip(chain, xs):  # warm up
+        w @ x
+    times = np.empty(repeats)
+    for r in range(repeats):
+        t = time.perf_counter()
+        for w, x in zip(chain, xs):
+            w @ x
+        times[r] = time.perf_counter() - t
+    macs = sum(w.size for w in chain)
+    return float(np.median(times)), macs
+
+
+def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True, hand_ik=False):
+    from .runtime import MODEL_DIR
+    from .resample import resample_take
+    from .take import read_take
+
+    model_dir = model_dir or MODEL_DIR
+    clocks = {"networks": [0.0], "recovery": [0.0]}
+    nets = {k: _Timed(OnnxNet(os.path.join(model_dir, f), threads), clocks["networks"])
+            for k, f in MODEL_FILES.items()}
+    synth = _TimedSynth(nets=nets, foot_lock=foot_lock, hand_ik=hand_ik, clocks=clocks)
+    take = resample_take(read_take(take_path))
+    valid = take.valid
+    total, net_t, rec_t = (np.empty(frames) for _ in range(3))
+    warm = 60
+    for i in range(frames + warm):
+        k = i % take.n_frames
+        if k == 0:
+            synth.reset()
+        clocks["networks"][0] = clocks["recovery"][0] = 0.0
+        t = time.perf_counter()
+        synth.step(take.positions[k], take.quats[k], valid[k])
+        dt = time.perf_counter() - t
+        if i >= warm:
+            total[i - warm], net_t[i - warm], rec_t[i - warm] = dt, clocks["networks"][0], clocks["recovery"][0]
+    floor, macs = compute_floor(model_dir)
+    per = {name: arr / 2.0 * 1000.0 for name, arr in
+           (("total", total), ("networks", net_t), ("recovery", rec_t), ("features", total - net_t - rec_t))}
+    return {"frames": frames, "threads": threads,
+            "median_ms": {k: float(np.median(v)) for k, v in per.items()},
+            "p99_ms": {k: float(np.percentile(v, 99)) for k, v in per.items()},
+            "floor_ms": floor / 2.0 * 1000.0, "macs_per_frame": macs,
+            "ratio_to_floor": float(np.median(per["total"]) / (floor / 2.0 * 1000.0))}
+
+
+def report(res) -> str:
+    lines = [f"latency per character-frame over {res['frames']} duet frames, batch 1, "
+             f"{res['threads']} onnxruntime thread(s):",
+             f"  {'':12s} {'median':>9s} {'p99':>9s}"]
+    for k in ("total", "features", "networks", "recovery"):
+        lines.append(f"  {k:12s} {res['median_ms'][k]:8.3f}ms {res['p99_ms'][k]:8.3f}ms")
+    lines.append(f"  compute floor (bare numpy mat-vec of the same weights, {res['macs_per_frame'] / 1e6:.2f} M "
+                 f"MACs per duet frame): {res['floor_ms']:.3f} ms per character-frame")
+    lines.append(f"  ratio total / floor: {res['ratio_to_floor']:.1f}x")
+    return "\n".join(lines)
