@@ -1,0 +1,133 @@
+"""Build the extension zips with Blender's own tool, one per platform, with the
+ONNX Runtime wheels (and their dependencies, never numpy: Blender ships it).
+
+    python -m dancing_points_addon build-extension [-o dist] [--no-wheels]
+
+Steps: stage the tracked files of the checkout (``git ls-files``; the models
+are tracked) in a temporary folder, download the wheels for each platform with
+pip into ``cache/wheels`` (reused on the next build), list them in the staged
+manifest, then run Blender's ``extension build --split-platforms`` and
+``extension validate`` on every zip. Blender's tool is reached through the
+``bpy`` module (``bl_pkg``) in a subprocess, so this module stays bpy-free.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+
+from .errors import InputError
+
+ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+ONNXRUNTIME = "onnxruntime==1.22.1"
+# Blender platform -> pip platform tags to try (first match wins)
+PLATFORMS = {
+    "linux-x64": ["manylinux_2_28_x86_64"],
+    "windows-x64": ["win_amd64"],
+    "macos-arm64": ["macosx_13_0_arm64", "macosx_14_0_arm64"],
+}
+PYTHON = "3.11"
+_BLENDER_CLI = ("import sys, bpy\nfrom bl_pkg.bl_extension_cli import cli_extension_handler\n"
+                "sys.exit(cli_extension_handler(sys.argv[1:]))\n")
+
+
+def blender_extension_cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
+    """Run ``blender --command extension ARGS`` through the bpy module."""
+    return subprocess.run([sys.executable, "-c", _BLENDER_CLI, *args], cwd=cwd, capture_output=True, text=True)
+
+
+def tracked_files(root=ROOT) -> list[str]:
+    try:
+        out = subprocess.run(["git", "ls-files", "-z"], cwd=root, capture_output=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        raise InputError(root, "not a git checkout: cannot tell the extension's files") from None
+    return [p for p in out.decode().split("\0") if p]
+
+
+def download_wheels(platform: str, cache_dir: str) -> list[str]:
+    """Wheels of onnxruntime and its dependencies (no numpy) for one platform."""
+    dest = os.path.join(cache_dir, platform)
+    os.makedirs(dest, exist_ok=True)
+    if not glob.glob(os.path.join(dest, "onnxruntime-*.whl")):
+        last = None
+        for tag in PLATFORMS[platform]:
+            res = subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--only-binary=:all:",
+                                  "--python-version", PYTHON, "--implementation", "cp", "--platform", tag,
+                                  "-d", dest, ONNXRUNTIME], capture_output=True, text=True)
+            if res.returncode == 0:
+                break
+            last = res.stderr.strip().splitlines()[-1:] or ["pip failed"]
+        else:
+            raise InputError(None, f"cannot download {ONNXRUNTIME} for {platform}: {last[0]}")
+    wheels = sorted(glob.glob(os.path.join(dest, "*.whl")))
+    return [w for w in wheels if not os.path.basename(w).lower().startswith("numpy-")]
+
+
+def unique_wheels(paths: list[str]) -> list[str]:
+    """One file per wheel name; a project with a pure-Python wheel keeps only that
+    one, so no platform's zip carries two builds of the same package."""
+    by_name = {os.path.basename(p): p for p in paths}
+    project = {n: n.split("-")[0].lower() for n in by_name}
+    pure = {project[n] for n in by_name if n.endswith("-none-any.whl")}
+    return [by_name[n] for n in sorted(by_name) if project[n] not in pure or n.endswith("-none-any.whl")]
+
+
+def stage(dest: str, root=ROOT) -> None:
+    for rel in tracked_files(root):
+        src = os.path.join(root, rel)
+        if not os.path.isfile(src):
+            continue
+        os.makedirs(os.path.dirname(os.path.join(dest, rel)), exist_ok=True)
+        shutil.copy2(src, os.path.join(dest, rel))
+
+
+def add_wheels_to_manifest(manifest_path: str, wheel_paths: list[str], platforms: list[str]) -> None:
+    text = open(manifest_path, encoding="utf-8").read()
+    lines = ["wheels = ["] + [f'  "./wheels/{os.path.basename(w)}",' for w in wheel_paths] + ["]",
+             "platforms = [" + ", ".join(f'"{p}"' for p in platforms) + "]", ""]
+    # top-level keys must come before the first [table]
+    i = text.index("\n[")
+    text = text[:i + 1] + "\n".join(lines) + "\n" + text[i + 1:]
+    with open(manifest_path, "w", encoding="utf-8") as f:
+        f.write(text)
+
+
+def build(out_dir: str = "dist", wheels: bool = True, platforms=None, cache_dir=None, log=print) -> list[str]:
+    """Build the zips into ``out_dir``; returns their paths."""
+    platforms = list(platforms or PLATFORMS)
+    cache_dir = cache_dir or os.path.join(ROOT, "cache", "wheels")
+    out_dir = os.path.abspath(out_dir)
+    os.makedirs(out_dir, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        src = os.path.join(tmp, "dancing_points")
+        stage(src)
+        args = ["build", "--source-dir", src, "--output-dir", out_dir]
+        if wheels:
+            os.makedirs(os.path.join(src, "wheels"))
+            all_wheels = unique_wheels([w for p in platforms for w in download_wheels(p, cache_dir)])
+            for w in all_wheels:
+                shutil.copy2(w, os.path.join(src, "wheels"))
+            log(f"{len(all_wheels)} wheels for {', '.join(platforms)}")
+            add_wheels_to_manifest(os.path.join(src, "blender_manifest.toml"), all_wheels, platforms)
+            args.append("--split-platforms")
+        before = set(glob.glob(os.path.join(out_dir, "*.zip")))
+        res = blender_extension_cli(*args)
+        if res.returncode != 0:
+            raise InputError(None, "extension build failed: " + " ".join((res.stderr or res.stdout).split())[-400:])
+        zips = sorted(set(glob.glob(os.path.join(out_dir, "*.zip"))) - before) or \
+            sorted(glob.glob(os.path.join(out_dir, "dancing_points-*.zip")))
+        for z in zips:
+            v = blender_extension_cli("validate", z)
+            if v.returncode != 0:
+                raise InputError(z, "Blender's validator rejects the zip: " + " ".join(v.stdout.split())[-300:])
+            log(f"built {z} ({os.path.getsize(z) / 1e6:.1f} MB), validated")
+        return zips
+
+
+def zip_platform(path: str) -> str | None:
+    m = re.search(r"-(linux-x64|windows-x64|macos-arm64|macos-x64)\.zip$", path)
+    return m.group(1) if m else None
