@@ -21,7 +21,6 @@ import numpy as np
 from . import features as F
 from .pose import bone_vectors_from_pose, recover_pose
 from .representation import root_compose, root_from_head, rot6d_to_matrix, rot_to_world, to_local, to_world
-from .rotations import quat_to_matrix
 from .skeleton import JOINT_NAMES, TRACKED
 
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
@@ -30,6 +29,15 @@ MODEL_FILES = {"mapping": "mapping.onnx", "leader": "tracker_leader.onnx", "foll
 # the standing height it corresponds to: calibration uses their ratio.
 TRAIN_HEAD_HEIGHT = 1.47
 TRAIN_HEIGHT = 1.70
+
+
+def _quat_matrix(q) -> np.ndarray:
+    """One unit quaternion (w, x, y, z) to a rotation matrix (normalised first)."""
+    w, x, y, z = (float(v) for v in q)
+    n = 2.0 / (w * w + x * x + y * y + z * z)
+    return np.array([[1 - n * (y * y + z * z), n * (x * y - w * z), n * (x * z + w * y)],
+                     [n * (x * y + w * z), 1 - n * (x * x + z * z), n * (y * z - w * x)],
+                     [n * (x * z - w * y), n * (y * z + w * x), 1 - n * (x * x + y * y)]])
 
 
 class OnnxNet:
@@ -150,8 +158,8 @@ class Synthesizer:
         self.leader = _Dancer(self.nets["leader"], self.default_pose["leader"])
         self.follower = _Dancer(self.nets["follower"], self.default_pose["follower"])
         self.prev_follower = None  # (root, tracked_local) predicted for frame t
-        self.last_valid = None  # last valid (positions (3,3), head rotation (3,3)) in input space
-        self.hand_local = None  # last valid hand positions in the head root frame (2, 3)
+        self.last_valid = None  # last valid (head position, head rotation), input space
+        self.last_hand = [None, None]  # last valid (hand position, head root) per hand
         self._head_heights = []
         self._lockers = None
         self._effector = None
@@ -173,40 +181,42 @@ class Synthesizer:
     # -- input cleaning --------------------------------------------------------
     def _clean(self, positions, quats, valid):
         """Hold lost devices: the head keeps its last pose, a hand keeps its last
-        place relative to the head's floor frame (so it travels with the body)."""
-        positions = np.asarray(positions, dtype=np.float64)
-        head_ok = bool(valid[0])
-        if head_ok:
-            head_pos = positions[0]
-            head_rot = quat_to_matrix(np.asarray(quats[0], dtype=np.float64))
+        place relative to the head's floor frame (so it travels with the body).
+        Returns tracked positions (3, 3), head device rotation and its root."""
+        if valid[0]:
+            head_pos = np.asarray(positions[0], dtype=np.float64)
+            head_rot = _quat_matrix(quats[0])
         elif self.last_valid is not None:
             head_pos, head_rot = self.last_valid
         else:
             head_pos, head_rot = np.array([0.0, TRAIN_HEAD_HEIGHT, 0.0]), np.diag([-1.0, 1.0, -1.0])
+        self.last_valid = (head_pos, head_rot)
         root = root_from_head(head_pos, head_rot)
-        hands = np.empty((2, 3))
+        tracked = np.empty((3, 3))
+        tracked[0] = head_pos
         for i in (1, 2):
             if valid[i]:
-                hands[i - 1] = positions[i]
-            elif self.hand_local is not None:
-                hands[i - 1] = to_world(self.hand_local[i - 1][None], root)[0]
+                tracked[i] = positions[i]
+                self.last_hand[i - 1] = (tracked[i].copy(), root)
             else:
-                d = self.default_pose["leader"][:93].reshape(31, 3)[TRACKED[i]]
-                hands[i - 1] = to_world(d[None], root)[0]
-        self.last_valid = (head_pos, head_rot)
-        self.hand_local = to_local(hands, root)
-        return np.concatenate([head_pos[None], hands], axis=0), head_rot
+                last = self.last_hand[i - 1]
+                if last is None:  # never seen: the default pose's hand
+                    local = self.default_pose["leader"][:93].reshape(31, 3)[TRACKED[i]]
+                else:
+                    local = to_local(last[0][None], last[1])[0]
+                tracked[i] = to_world(local[None], root)[0]
+        return tracked, head_rot, root
 
     # -- one frame -------------------------------------------------------------
     def step(self, positions, quats, valid=(True, True, True)):
         """One 30 Hz frame: device positions (3, 3), quaternions (3, 4) (w, x, y, z),
         ``valid`` (3,) tracking flags. Returns (leader, follower) :class:`DuetFrame`."""
-        tracked, head_rot = self._clean(positions, quats, valid)
+        tracked, head_rot, root = self._clean(positions, quats, valid)
         if valid[0] and self.height is None:
             self._head_heights.append(tracked[0, 1])
         s = self.scale()
         tracked_s = tracked * s
-        root = root_from_head(tracked_s[0], head_rot)
+        root = root * np.array([s, s, 1.0, 1.0])  # scaling about the origin keeps the heading
         if self.t == 0:
             self.hist_roots[:] = root
             self.hist_tracked[:] = tracked_s
