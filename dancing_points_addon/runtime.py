@@ -27,7 +27,7 @@ MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file
 MODEL_FILES = {"mapping": "mapping.onnx", "leader": "tracker_leader.onnx", "follower": "tracker_follower.onnx"}
 # Head height (end of `upperneck`, metres) of the training leader standing, and
 # the standing height it corresponds to: calibration uses their ratio.
-TRAIN_HEAD_HEIGHT = 1.47
+TRAIN_HEAD_HEIGHT = 1.50
 TRAIN_HEIGHT = 1.70
 
 
@@ -105,12 +105,14 @@ class _Dancer:
         self.root = np.asarray(root, dtype=np.float64).copy()
         self.pose = self.default_pose.copy()
 
-    def advance(self, key_roots, key_tracked):
-        """One tracker step; returns world positions, rotations, contacts of the new frame."""
+    def advance(self, key_roots, key_tracked, observed_root=None):
+        """One tracker step; returns world positions, rotations, contacts of the new
+        frame. ``observed_root``: the new frame's root when the input shows it (the
+        leader's head), used instead of the predicted one so the root cannot drift."""
         x = F.tracking_input(self.pose[None], self.root[None], key_roots[None], key_tracked[None])
         y = self.net(x).astype(np.float64)
         rel, pos, rot, con = F.split_tracking_output(y[:, :F.KEY_OUT])
-        root = root_compose(self.root, rel[0, 0])
+        root = root_compose(self.root, rel[0, 0]) if observed_root is None else observed_root
         pos_l, rot_l = pos[0, 0], rot[0, 0]
         con = np.clip(con[0, 0], 0.0, 1.0)
         self.root = root
@@ -122,12 +124,15 @@ class Synthesizer:
     """Holds the three ONNX sessions and the rollout state.
 
     ``height``: the leader's standing height in metres (None: estimated from the
-    head height seen so far). ``foot_lock``: contact-based foot locking (needs
+    head height seen so far). ``anchor_root``: each dancer's new root is the one
+    its inputs give for that frame (the leader's head; the follower's mapping
+    prediction) rather than the tracker's own, so roots cannot drift. ``foot_lock``: contact-based foot locking (needs
     ``ik``); ``hand_ik``: put the leader's head and wrists exactly on the input.
     """
 
     def __init__(self, model_dir: str | None = None, threads: int = 1, height: float | None = None,
-                 foot_lock: bool = True, hand_ik: bool = False, nets: dict | None = None):
+                 foot_lock: bool = True, hand_ik: bool = False, nets: dict | None = None,
+                 anchor_root: bool = True):
         model_dir = model_dir or MODEL_DIR
         if nets is None:
             nets = {k: OnnxNet(os.path.join(model_dir, f), threads) for k, f in MODEL_FILES.items()}
@@ -135,6 +140,7 @@ class Synthesizer:
         self.height = height
         self.foot_lock = foot_lock
         self.hand_ik = hand_ik
+        self.anchor_root = anchor_root
         self.default_pose = {r: self._default_pose(nets[r]) for r in ("leader", "follower")}
         # Each dancer's rest skeleton, from its (FK-consistent) default pose.
         self.bone_vectors = {r: bone_vectors_from_pose(p[:93].reshape(31, 3),
@@ -236,8 +242,8 @@ class Synthesizer:
         lk_roots, lk_tr = self._leader_keys(root, cur_local, l_roots, l_tr)
         fk_roots, fk_tr = self._follower_keys(f_roots, f_tr, l_roots, l_tr)
         self.prev_follower = (f_roots[0], f_tr[0])
-        lp, lr, lc = self.leader.advance(lk_roots, lk_tr)
-        fp, fr, fc = self.follower.advance(fk_roots, fk_tr)
+        lp, lr, lc = self.leader.advance(lk_roots, lk_tr, root if self.anchor_root else None)
+        fp, fr, fc = self.follower.advance(fk_roots, fk_tr, fk_roots[0] if self.anchor_root else None)
         lp, lr = self._recover(0, lp, lr, lc, tracked_s)
         fp, fr = self._recover(1, fp, fr, fc, None)
         self.t += 1

@@ -28,7 +28,7 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
         x, y = mapping_samples(clips[:2])
         model, n_in, keep, name = MappingNet(F.MAP_IN, F.MAP_OUT, 32), F.MAP_IN, mapping_keep(), "mapping"
     else:
-        x, y = tracking_samples(clips[:2], "leader")
+        x, y, _ = tracking_samples(clips[:2], "leader")
         cls = TrackingNet if kind == "tracker" else VanillaTracker
         model, n_in, keep, name = cls(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM), F.TRACK_IN, tracker_keep(), "tracker_leader"
     info = T.train_model(model, x[:512], y[:512], epochs=2, batch=64)
@@ -63,5 +63,5 @@ def test_training_samples_stay_inside_train_frames(salsa_dir, clips):
         assert n == split_range(n60, "train")[1]
     x, y = mapping_samples(clips)
     assert len(x) == sum(c.n_frames - F.FUTURE for c in clips)
-    xt, yt = tracking_samples(clips, "follower")
+    xt, yt, _ = tracking_samples(clips, "follower")
     assert len(xt) == len(x) and xt.shape[1] == F.TRACK_IN and yt.shape[1] == F.TRACK_OUT

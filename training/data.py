@@ -3,13 +3,21 @@
 Every sample's window lies inside one clip's train frames: the past window is
 padded by repeating the clip's first frame (as the runtime pads at start-up)
 and the future window must fit (t + 30 < n), so no sample reaches a test frame.
+
+Tracker samples are built the way the runtime feeds the tracker (see
+``runtime``): the state is the pose at frame t in the dancer's anchored root;
+key 1 (frame t + 1) is the observed input for the leader and the mapping's
+last prediction for the follower; keys k >= 2 come from the mapping network
+run on the input up to t + 1. :func:`rollout_states` then replaces the ground
+truth state by the tracker's own closed-loop poses (DAgger-style), with the
+ground truth future kept as the target.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from dancing_points_addon import features as F
-from dancing_points_addon.representation import root_from_head, to_local
+from dancing_points_addon.representation import rot_to_local, to_local
 from dancing_points_addon.skeleton import TRACKED
 
 
@@ -21,34 +29,50 @@ def sample_times(n: int) -> np.ndarray:
     return np.arange(0, max(n - F.FUTURE, 0))
 
 
+def mapping_inputs(clip) -> np.ndarray:
+    """Mapping input at every frame of a clip (past window padded at the start)."""
+    n = clip.n_frames
+    pi = F.window_indices(np.arange(n), n, np.arange(-F.PAST + 1, 1))
+    return F.mapping_input(clip.leader.roots[pi], _tracked(clip.leader)[pi])
+
+
 def mapping_samples(clips):
     xs, ys = [], []
-    past = np.arange(-F.PAST + 1, 1)
     fut = np.arange(1, F.FUTURE + 1)
     for c in clips:
         if c.follower is None:
             continue
-        n = c.n_frames
-        t = sample_times(n)
+        t = sample_times(c.n_frames)
         if len(t) == 0:
             continue
         L, Fo = c.leader, c.follower
-        pi = F.window_indices(t, n, past)
         fi = t[:, None] + fut[None, :]
-        xs.append(F.mapping_input(L.roots[pi], _tracked(L)[pi]))
+        xs.append(mapping_inputs(c)[t])
         ys.append(F.mapping_target(L.roots[t], L.roots[fi], _tracked(L)[fi], Fo.roots[fi], _tracked(Fo)[fi]))
     return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
 
 
-def tracking_samples(clips, role: str, past_input: bool = False):
+def mapping_predictions(clip, mapping_fn):
+    """The mapping network's output at every frame τ of a clip, decoded: per
+    dancer, world roots ``(n, FUTURE, 4)`` and own-root tracked points of frames
+    τ+1 … τ+30."""
+    y = mapping_fn(mapping_inputs(clip).astype(np.float32)).astype(np.float64)
+    return F.decode_mapping(y, clip.leader.roots)
+
+
+def tracking_samples(clips, role: str, past_input: bool = False, mapping_fn=None):
     """Tracker samples of one dancer (``role`` 'leader' or 'follower').
 
-    ``past_input`` builds ablation (b): the future-key slots carry the *past*
-    three-point trajectory (frames t − k) instead of the future one.
+    Without ``mapping_fn`` the keys are the ground truth future (teacher
+    forcing). With it, keys are what the runtime feeds (see the module doc) and
+    the follower's root is anchored to the mapping's prediction.
+    ``past_input`` builds ablation (b): the key slots carry the dancer's *past*
+    three-point trajectory (frames t + 1 − k) and no mapping is used.
+    Returns ``x, y`` and the (clip index, t) of every sample.
     """
-    xs, ys = [], []
+    xs, ys, where = [], [], []
     keys = F.TRACK_KEYS
-    for c in clips:
+    for ci, c in enumerate(clips):
         d = getattr(c, role)
         if d is None:
             continue
@@ -56,19 +80,76 @@ def tracking_samples(clips, role: str, past_input: bool = False):
         t = sample_times(n)
         if len(t) == 0:
             continue
+        ki = t[:, None] + keys[None, :]
         f0 = d.roots[t]
+        if past_input:
+            src = F.window_indices(t + 1, n, 1 - keys)
+            key_roots, key_tr = d.roots[src], to_local(_tracked(d)[src], d.roots[src])
+        elif mapping_fn is None:
+            key_roots, key_tr = d.roots[ki], to_local(_tracked(d)[ki], d.roots[ki])
+        else:
+            who = 0 if role == "leader" else 1
+            roots, tr = mapping_predictions(c, mapping_fn)[who]
+            nxt = np.minimum(t + 1, n - 1)
+            key_roots = np.empty((len(t), len(keys), 4))
+            key_tr = np.empty((len(t), len(keys), 3, 3))
+            key_roots[:, 1:] = roots[nxt][:, keys[1:] - 2]
+            key_tr[:, 1:] = tr[nxt][:, keys[1:] - 2]
+            if role == "leader":  # key 1 is the observed input
+                key_roots[:, 0] = d.roots[t + 1]
+                key_tr[:, 0] = to_local(_tracked(d)[t + 1], d.roots[t + 1])
+            else:  # the mapping's previous prediction of frame t + 1; F0 its prediction of t
+                key_roots[:, 0], key_tr[:, 0] = roots[t, 0], tr[t, 0]
+                prev = np.maximum(t - 1, 0)
+                f0 = np.where((t > 0)[:, None], roots[prev, 0], d.roots[t])
         pos_l = to_local(d.positions[t], f0)
-        from dancing_points_addon.representation import rot_to_local
         rot_l = rot_to_local(d.rotations[t], f0)
         pose = F.pose_features(pos_l, rot_l, d.contacts[t])
-        ki = t[:, None] + keys[None, :]
-        src = F.window_indices(t, n, -keys) if past_input else ki
-        key_roots = d.roots[src]
-        key_tr = to_local(_tracked(d)[src], key_roots)
         xs.append(F.tracking_input(pose, f0, key_roots, key_tr))
         ys.append(F.tracking_target(f0, d.roots[ki], d.positions[ki], d.rotations[ki], d.contacts[ki]))
-    return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
+        where.append(np.stack([np.full(len(t), ci), t], axis=1))
+    return (np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32),
+            np.concatenate(where))
 
 
-def head_root(positions, device_rot):
-    return root_from_head(positions, device_rot)
+def next_pose_features(y_key1: np.ndarray) -> np.ndarray:
+    """The runtime's next state from a tracker's first output key: its pose block
+    with the 6D rotations orthonormalised and contacts clipped (batched)."""
+    from dancing_points_addon.representation import rot6d, rot6d_to_matrix
+
+    n = len(y_key1)
+    pos = y_key1[:, 4:97]
+    rot = rot6d(rot6d_to_matrix(y_key1[:, 97:283].reshape(n, F.N_JOINTS, 6).astype(np.float64)))
+    con = np.clip(y_key1[:, 283:287], 0.0, 1.0)
+    return np.concatenate([pos, rot.reshape(n, -1), con], axis=1).astype(np.float32)
+
+
+def rollout_states(model_fn, x, where, steps=10, stride=2, record=(2, 5, 10)):
+    """Closed-loop states: from every ``stride``-th sample, roll the tracker
+    ``steps`` frames forward on the samples' own key inputs (anchored roots), and
+    return the sample indices and the rolled-out pose features at ``record`` steps.
+
+    With the roots anchored, a rolled-out sample differs from its ground-truth
+    sample only in the pose block, so its target stays the ground truth's.
+    """
+    starts = np.arange(0, len(x), stride)
+    state = x[starts, :F.POSE_DIM].copy()
+    idx_out, pose_out = [], []
+    for j in range(1, steps + 1):
+        cur = starts + j - 1
+        ok = (cur < len(x))
+        ok[ok] &= (where[cur[ok], 0] == where[starts[ok], 0]) & (where[cur[ok], 1] == where[starts[ok], 1] + j - 1)
+        starts, state, cur = starts[ok], state[ok], cur[ok]
+        if len(starts) == 0:
+            break
+        xin = x[cur].copy()
+        xin[:, :F.POSE_DIM] = state
+        y = model_fn(xin)
+        state = next_pose_features(y[:, :F.KEY_OUT])
+        nxt = cur + 1
+        ok2 = nxt < len(x)
+        ok2[ok2] &= (where[nxt[ok2], 0] == where[cur[ok2], 0]) & (where[nxt[ok2], 1] == where[cur[ok2], 1] + 1)
+        if j in record:
+            idx_out.append(nxt[ok2])
+            pose_out.append(state[ok2])
+    return np.concatenate(idx_out), np.concatenate(pose_out)

@@ -57,12 +57,13 @@ class _Net(nn.Module):
     """Normalisation, optional residual target, input noise; subclasses define
     ``_loss(xn, yn)`` and ``_predict(xn)`` in normalised space."""
 
-    def __init__(self, n_in, n_out, noise=0.1, pose_dim=None):
+    def __init__(self, n_in, n_out, noise=0.1, pose_dim=None, pose_noise=0.0):
         super().__init__()
         self.nx, self.ny = Normalizer(n_in), Normalizer(n_out)
         self.n_out = n_out
         self.noise = noise
         self.pose_dim = pose_dim
+        self.pose_noise = pose_noise
 
     def _base(self, x):
         return pose_base(x, self.n_out, self.pose_dim) if self.pose_dim else 0.0
@@ -71,7 +72,21 @@ class _Net(nn.Module):
         self.nx.fit(x)
         self.ny.fit(y - self._base(x))
 
+    def corrupt_pose(self, x):
+        """Training only: perturb the *current pose* input (in units of its std,
+        a random strength per sample up to ``pose_noise``). The residual base is
+        built from the perturbed pose too, so the target teaches the network to
+        pull a drifted state back to what the three-point keys say: the state it
+        meets in a closed-loop rollout is its own, imperfect, prediction."""
+        if not (self.training and self.pose_dim and self.pose_noise > 0):
+            return x
+        d = self.pose_dim
+        scale = torch.rand(x.shape[0], 1, device=x.device) * self.pose_noise
+        noise = torch.randn(x.shape[0], d, device=x.device) * self.nx.std[:d] * scale
+        return torch.cat([x[:, :d] + noise, x[:, d:]], dim=1)
+
     def loss(self, x, y):
+        x = self.corrupt_pose(x)
         xn, yn = self.nx.norm(x), self.ny.norm(y - self._base(x))
         if self.training and self.noise > 0:
             xn = xn + self.noise * torch.randn_like(xn)
@@ -133,8 +148,9 @@ class TrackingNet(_Net):
     open rather than the whole pose.
     """
 
-    def __init__(self, n_in, n_out, hidden, layers=6, channels=16, width=32, noise=0.1, pose_dim=None):
-        super().__init__(n_in, n_out, noise, pose_dim)
+    def __init__(self, n_in, n_out, hidden, layers=6, channels=16, width=32, noise=0.1, pose_dim=None,
+                 pose_noise=0.0):
+        super().__init__(n_in, n_out, noise, pose_dim, pose_noise)
         self.channels, self.width = channels, width
         z = channels * width
         self.estimator = mlp(n_in, z, hidden, layers)
@@ -164,8 +180,8 @@ class TrackingNet(_Net):
 class VanillaTracker(_Net):
     """Ablation (a): encoder and decoder stacked as one MLP, no latent, L_rec only."""
 
-    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, pose_dim=None):
-        super().__init__(n_in, n_out, noise, pose_dim)
+    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, pose_dim=None, pose_noise=0.0):
+        super().__init__(n_in, n_out, noise, pose_dim, pose_noise)
         self.net = nn.Sequential(mlp(n_in, hidden, hidden, layers), nn.ELU(), mlp(hidden, n_out, hidden, layers))
 
     def _loss(self, xn, yn):

@@ -24,7 +24,7 @@ import torch
 from dancing_points_addon import features as F
 from dancing_points_addon.dataset import load_clips
 
-from .data import mapping_samples, tracking_samples
+from .data import mapping_samples, rollout_states, tracking_samples
 from .export import export
 from .model import MappingNet, TrackingNet, VanillaTracker
 
@@ -42,10 +42,11 @@ def save_checkpoint(model, path, meta):
     torch.save({"state_dict": model.state_dict(), "meta": meta}, path)
 
 
-def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None, seed=0):
+def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None, seed=0, refit=True):
     torch.manual_seed(seed)
     xt, yt = torch.from_numpy(x), torch.from_numpy(y)
-    model.fit_normalizers(xt, yt)
+    if refit:  # normalisation statistics of the (train split) samples
+        model.fit_normalizers(xt, yt)
     model.to(device)
     xt, yt = xt.to(device), yt.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
@@ -81,8 +82,10 @@ def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None,
 
 CONFIGS = {
     # hidden units, epochs
-    "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 60},
-    "tiny": {"map_hidden": 32, "map_epochs": 1, "track_hidden": 32, "track_epochs": 1},
+    "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 40,
+             "pose_noise": 0.3, "rollout_steps": 10, "rollout_epochs": 15},
+    "tiny": {"map_hidden": 32, "map_epochs": 1, "track_hidden": 32, "track_epochs": 1,
+             "pose_noise": 0.3, "rollout_steps": 3, "rollout_epochs": 1},
 }
 
 
@@ -123,37 +126,52 @@ def main(argv=None):
                {"hidden": cfg["map_hidden"], "train": info})
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": cfg["map_hidden"]})
         report["models"]["mapping"] = info
+    mapping_fn = None
+    if only & {"leader", "follower", "vanilla"}:
+        from dancing_points_addon.runtime import OnnxNet
+        mapping_fn = OnnxNet(os.path.join(args.out, "mapping.onnx"), threads=max(1, torch.get_num_threads()))
+
+    def tracker(cls, role, name, out_path, past_input=False, extra=None):
+        """Stage 1: the runtime's key inputs (teacher-forced state); stage 2:
+        add closed-loop states of the stage-1 model (DAgger-style), train on."""
+        x, y, where = tracking_samples(clips, role, past_input=past_input,
+                                       mapping_fn=None if past_input else mapping_fn)
+        log(f"{name}: {x.shape} -> {y.shape}")
+        m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=cfg["pose_noise"])
+        info1 = train_model(m, x, y, cfg["track_epochs"], device=device, log=log, seed=args.seed)
+        m.cpu()
+
+        def run(xb):
+            with torch.no_grad():
+                return torch.cat([m(torch.from_numpy(xb[i:i + 4096])) for i in range(0, len(xb), 4096)]).numpy()
+
+        idx, poses = rollout_states(run, x, where, steps=cfg["rollout_steps"])
+        xr = x[idx].copy()
+        xr[:, :F.POSE_DIM] = poses
+        log(f"  rollout states: {len(idx)}; mean pose drift "
+            f"{float(np.abs(poses[:, :93] - x[idx, :93]).mean()) * 100:.2f} cm per coordinate")
+        x2, y2 = np.concatenate([x, xr]), np.concatenate([y, y[idx]])
+        info2 = train_model(m, x2, y2, cfg["rollout_epochs"], device=device, log=log, seed=args.seed + 1,
+                            refit=False)
+        info = {"stage1": info1, "stage2": info2, "seconds": info1["seconds"] + info2["seconds"]}
+        meta = {"hidden": cfg["track_hidden"], "role": role, "train": info, "default_pose": default_pose(x)}
+        meta.update(extra or {})
+        export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta)
+        save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), meta)
+        report["models"][name] = info
+
     for role in ("leader", "follower"):
-        x, y = tracking_samples(clips, role)
         if role in only:
-            log(f"tracker {role}: {x.shape} -> {y.shape}")
-            m = TrackingNet(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM)
-            info = train_model(m, x, y, cfg["track_epochs"], device=device, log=log, seed=args.seed)
-            export(m, f"tracker_{role}", os.path.join(args.out, f"tracker_{role}.onnx"), F.TRACK_IN,
-                   {"hidden": cfg["track_hidden"], "role": role, "train": info,
-                    "default_pose": default_pose(x)})
-            save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"tracker_{role}.pt"),
-                            {"hidden": cfg["track_hidden"], "default_pose": default_pose(x)})
-            report["models"][f"tracker_{role}"] = info
+            tracker(TrackingNet, role, f"tracker_{role}", os.path.join(args.out, f"tracker_{role}.onnx"))
         if not args.ablations:
             continue
         os.makedirs(args.ablations, exist_ok=True)
         if "vanilla" in only:  # ablation (a): no latent, L_rec only
-            log(f"ablation (a) vanilla MLP tracker {role}")
-            v = VanillaTracker(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM)
-            info = train_model(v, x, y, cfg["track_epochs"], device=device, log=log, seed=args.seed)
-            export(v, f"tracker_{role}", os.path.join(args.ablations, f"vanilla_{role}.onnx"), F.TRACK_IN,
-                   {"ablation": "a", "role": role, "train": info, "default_pose": default_pose(x)})
-            report["models"][f"vanilla_{role}"] = info
+            tracker(VanillaTracker, role, f"vanilla_{role}", os.path.join(args.ablations, f"vanilla_{role}.onnx"),
+                    extra={"ablation": "a"})
         if "pastinput" in only:  # ablation (b): fed the past three points, no mapping
-            log(f"ablation (b) past-input tracker {role}")
-            xp, yp = tracking_samples(clips, role, past_input=True)
-            p = TrackingNet(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM)
-            info = train_model(p, xp, yp, cfg["track_epochs"], device=device, log=log, seed=args.seed)
-            export(p, f"tracker_{role}", os.path.join(args.ablations, f"pastinput_{role}.onnx"), F.TRACK_IN,
-                   {"ablation": "b", "role": role, "input": "past three-point trajectory", "train": info,
-                    "default_pose": default_pose(x)})
-            report["models"][f"pastinput_{role}"] = info
+            tracker(TrackingNet, role, f"pastinput_{role}", os.path.join(args.ablations, f"pastinput_{role}.onnx"),
+                    past_input=True, extra={"ablation": "b", "input": "past three-point trajectory"})
     report["seconds_total"] = time.time() - t_all
     report_dir = args.out if only & {"mapping", "leader", "follower"} else args.ablations
     with open(os.path.join(report_dir, "training_report.json"), "w") as f:
