@@ -21,7 +21,6 @@ Conventions
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -227,125 +226,11 @@ def skin_transforms(positions: np.ndarray, rotations: np.ndarray, bone_vectors: 
     return out
 
 
-def lbs(vertices: np.ndarray, indices: np.ndarray, weights: np.ndarray, transforms: np.ndarray) -> np.ndarray:
-    """Linear blend skinning: rest ``vertices (V, 3)``, influences ``indices``,
-    ``weights (V, K)``, ``transforms (…, J, 4, 4)`` -> ``(…, V, 3)``.
-    Weights are normalised per vertex (as Blender's Armature modifier does)."""
-    v = np.asarray(vertices, dtype=np.float64)
-    w = np.asarray(weights, dtype=np.float64)
-    s = w.sum(-1, keepdims=True)
-    w = np.where(s > 0, w / np.where(s > 0, s, 1.0), 0.0)
-    M = np.asarray(transforms, dtype=np.float64)[..., np.asarray(indices), :, :]  # (…, V, K, 4, 4)
-    blended = np.einsum("vk,...vkab->...vab", w, M)
-    return np.einsum("...vab,vb->...va", blended[..., :3, :3], v) + blended[..., :3, 3]
-
-
-# --------------------------------------------------------------------------- default body
-
-@dataclass
-class BodyMesh:
-    """A skinned mesh in motion space (the rest pose of :func:`rest_joints`):
-    ``vertices (V, 3)``, triangles ``faces (F, 3)``, ``indices``/``weights (V, K)``
-    (bone indices, SPEC order)."""
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    indices: np.ndarray
-    weights: np.ndarray
-
-
-# Radius (m) of each bone's ellipsoid for a 1.7 m person; 0: no shape.
-_RADII = {
-    "root": 0.0, "lhipjoint": 0.10, "rhipjoint": 0.10, "lfemur": 0.075, "rfemur": 0.075,
-    "ltibia": 0.055, "rtibia": 0.055, "lfoot": 0.045, "rfoot": 0.045, "ltoes": 0.035, "rtoes": 0.035,
-    "lowerback": 0.13, "upperback": 0.14, "thorax": 0.15, "lowerneck": 0.06, "upperneck": 0.055,
-    "head": 0.105, "lclavicle": 0.055, "rclavicle": 0.055, "lhumerus": 0.05, "rhumerus": 0.05,
-    "lradius": 0.042, "rradius": 0.042, "lwrist": 0.035, "rwrist": 0.035, "lhand": 0.035,
-    "rhand": 0.035, "lfingers": 0.02, "rfingers": 0.02, "lthumb": 0.018, "rthumb": 0.018,
-}
-
-
-def simple_body(bone_vectors: np.ndarray, rings: int = 8, segments: int = 12) -> BodyMesh:
-    """A default body: one ellipsoid per bone spanning it, the part near the bone's
-    start blended with the parent bone. Used when the core has no ``skinning`` module."""
-    bv = np.asarray(bone_vectors, dtype=np.float64)
-    ends = rest_joints(bv)
-    scale = max(float(ends[:, 1].max() - ends[:, 1].min()) / 1.55, 0.2)  # ~1.55 m head-to-toe span
-    verts, faces, idx, wts = [], [], [], []
-    base = 0
-    phi = np.linspace(0.0, np.pi, rings + 2)[1:-1]  # ring latitudes (poles separate)
-    theta = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
-    for n, name in enumerate(JOINT_NAMES):
-        r = _RADII[name] * scale
-        length = float(np.linalg.norm(bv[n]))
-        if r <= 0 or length <= 1e-6:
-            continue
-        a, b = ends[PARENTS[n]], ends[n]
-        d = (b - a) / length
-        u = np.cross(d, [0.0, 1.0, 0.0] if abs(d[1]) < 0.9 else [1.0, 0.0, 0.0])
-        u /= np.linalg.norm(u)
-        w = np.cross(d, u)
-        centre, half = (a + b) / 2, max(length / 2, r)
-        if name == "head":
-            centre, half = a + d * max(length / 2, r * 0.9), max(length / 2, r * 1.15)
-        s_ring = -np.cos(phi)  # -1 .. 1 along the bone
-        rad = np.sin(phi)
-        ring_pts = (centre + s_ring[:, None, None] * half * d
-                    + rad[:, None, None] * r * (np.cos(theta)[None, :, None] * u + np.sin(theta)[None, :, None] * w))
-        pts = np.concatenate([(centre - half * d)[None], ring_pts.reshape(-1, 3), (centre + half * d)[None]])
-        # Faces: bottom fan, quads as two triangles, top fan.
-        f = []
-        nr, ns = rings, segments
-        for j in range(ns):
-            f.append((0, 1 + (j + 1) % ns, 1 + j))
-        for i in range(nr - 1):
-            for j in range(ns):
-                p0 = 1 + i * ns + j
-                p1 = 1 + i * ns + (j + 1) % ns
-                p2 = 1 + (i + 1) * ns + (j + 1) % ns
-                p3 = 1 + (i + 1) * ns + j
-                f.extend([(p0, p1, p2), (p0, p2, p3)])
-        top = 1 + nr * ns
-        for j in range(ns):
-            p = 1 + (nr - 1) * ns
-            f.append((top, p + j, p + (j + 1) % ns))
-        # Weights: the start quarter blends with the parent bone (not the root bone).
-        par = int(PARENTS[n])
-        s_all = np.clip(((pts - a) @ d) / length, 0.0, 1.0)
-        w_par = np.where(par > 0, 0.5 * np.clip(1.0 - s_all / 0.25, 0.0, 1.0), 0.0)
-        verts.append(pts)
-        faces.append(np.asarray(f, dtype=np.int64) + base)
-        idx.append(np.stack([np.full(len(pts), n), np.full(len(pts), max(par, 0))], axis=1))
-        wts.append(np.stack([1.0 - w_par, w_par], axis=1))
-        base += len(pts)
-    return BodyMesh(np.concatenate(verts), np.concatenate(faces), np.concatenate(idx),
-                    np.round(np.concatenate(wts), 6))
-
-
 def body_arrays(body):
-    """``(vertices (V, 3), faces (F, k), indices (V, K), weights (V, K))`` from a
-    body object of the core (``skinning.make_body``) or :class:`BodyMesh`, for
-    the attribute names either uses: ``weights`` dense ``(V, 31)`` or sparse
-    ``indices``/``weight_indices`` + ``weights``/``values``/``weight_values``."""
-    verts = np.asarray(getattr(body, "vertices"), dtype=np.float64)
-    faces = np.asarray(getattr(body, "faces"))
-    idx = None
-    for name in ("indices", "weight_indices", "joint_indices", "bone_indices"):
-        if getattr(body, name, None) is not None:
-            idx = np.asarray(getattr(body, name))
-            break
-    val = None
-    for name in ("weights", "weight_values", "values", "joint_weights"):
-        if getattr(body, name, None) is not None:
-            val = np.asarray(getattr(body, name), dtype=np.float64)
-            break
-    if val is None:
-        raise ValueError("body has no skinning weights")
-    if idx is None:
-        if val.ndim != 2 or val.shape[1] != N_BONES:
-            raise ValueError("dense body weights must be (V, 31)")
-        idx = np.broadcast_to(np.arange(N_BONES), val.shape)
-    return verts, faces, np.asarray(idx, dtype=np.int64), val
+    """``(vertices (V, 3), faces (F, 3), indices (V, K), weights (V, K))`` of a
+    :class:`~.skinning.Body`."""
+    return (np.asarray(body.vertices, dtype=np.float64), np.asarray(body.faces),
+            np.asarray(body.indices, dtype=np.int64), np.asarray(body.weights, dtype=np.float64))
 
 
 # --------------------------------------------------------------------------- camera

@@ -18,6 +18,7 @@ import bpy
 import numpy as np
 
 from ..dancing_points_addon import blender_math as bm
+from ..dancing_points_addon import skinning
 from ..dancing_points_addon.skeleton import JOINT_NAMES, PARENTS
 from . import compat
 from .props import KIND_DUET, is_duet
@@ -29,20 +30,9 @@ ROLE_COLOUR = {"leader": (0.10, 0.28, 0.85, 1.0), "follower": (0.85, 0.12, 0.08,
 
 
 def make_body(bone_vectors):
-    """The default body of a skeleton: the core's ``skinning.make_body`` when it
-    exists, else ``blender_math.simple_body``. Returns ``(vertices (motion space),
-    faces, indices, weights)``."""
-    try:
-        from ..dancing_points_addon import skinning
-    except ImportError:
-        skinning = None
-    if skinning is not None and hasattr(skinning, "make_body"):
-        try:
-            return bm.body_arrays(skinning.make_body(bone_vectors))
-        except Exception as exc:  # a body we cannot use: fall back, say why
-            print("Dancing Points: skinning.make_body unusable ({:s}: {:s}); using the simple body".format(
-                type(exc).__name__, str(exc)))
-    return bm.body_arrays(bm.simple_body(bone_vectors))
+    """The default body of a skeleton (the core's ``skinning.make_body``):
+    ``(vertices (motion space), faces, indices, weights)``."""
+    return bm.body_arrays(skinning.make_body(bone_vectors))
 
 
 class _Created:

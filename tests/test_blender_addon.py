@@ -7,8 +7,7 @@ deform exactly like a numpy LBS; a headless Workbench render shows both bodies;
 BVH and FBX files of the same motion (through Blender's importers) give the
 same take as the CSV; bad input and failures leave the scene untouched.
 
-Models: ``$DP_MODEL_DIR``, else ``/tmp/tiny_models`` (``python -m training.train
---config tiny --out /tmp/tiny_models``), else the repository's ``models/``.
+Models: the shipped ``models/`` (``$DP_MODEL_DIR`` overrides).
 """
 from __future__ import annotations
 
@@ -24,7 +23,10 @@ import blender_scene_util as bsu  # noqa: E402
 from conftest import ROOT, SALSA  # noqa: E402
 from ext_util import enable_extension, import_from_extension  # noqa: E402
 
+from types import SimpleNamespace  # noqa: E402
+
 from dancing_points_addon import blender_math as bm  # noqa: E402
+from dancing_points_addon import skinning  # noqa: E402
 from dancing_points_addon.asf_amc import load_amc  # noqa: E402
 from dancing_points_addon.resample import resample_take  # noqa: E402
 from dancing_points_addon.skeleton import JOINT_NAMES, Motion  # noqa: E402
@@ -35,16 +37,8 @@ SECONDS = 10.0
 MM = 1e-3
 
 
-def _model_dir():
-    for cand in (os.environ.get("DP_MODEL_DIR", ""), "/tmp/tiny_models", str(ROOT / "models")):
-        if cand and all(os.path.isfile(os.path.join(cand, f)) for f in MODEL_FILES):
-            return cand
-    return None
-
-
-MODELS = _model_dir()
-needs_models = pytest.mark.skipif(MODELS is None, reason="no synthesis models (set DP_MODEL_DIR or train "
-                                                         "the tiny ones into /tmp/tiny_models)")
+# The shipped models (``$DP_MODEL_DIR`` overrides, e.g. to try freshly trained ones).
+MODELS = os.environ.get("DP_MODEL_DIR") or str(ROOT / "models")
 
 
 def _cut(motion: Motion, seconds: float) -> Motion:
@@ -338,7 +332,6 @@ def test_synthesize_without_take_or_models_creates_nothing(files, tmp_path):
     _assert_unchanged(state)
 
 
-@needs_models
 def test_failures_and_cancel_leave_scene_unchanged(files, monkeypatch):
     bsu.fresh_scene()
     coll = _import(files["csv"])
@@ -405,7 +398,6 @@ def _rig(duet_coll, role):
     return arms[0], bodies[0]
 
 
-@needs_models
 def test_bake_structure_and_keys(baked):
     duet = baked["duet"]
     T = duet.n_frames
@@ -442,7 +434,6 @@ def test_bake_structure_and_keys(baked):
     assert any(o.type == 'LIGHT' for o in scene.objects)
 
 
-@needs_models
 def test_bone_tails_match_core_output(baked):
     """Every bone's evaluated head and tail = the core's joint positions (Z up), all frames."""
     duet = baked["duet"]
@@ -463,7 +454,6 @@ def test_bone_tails_match_core_output(baked):
         assert err_root.max() < 1 * MM
 
 
-@needs_models
 def test_skinned_bodies_match_numpy_lbs(baked):
     duet = baked["duet"]
     T = duet.n_frames
@@ -477,13 +467,12 @@ def test_skinned_bodies_match_numpy_lbs(baked):
         for k in (0, T // 3, T // 2, T - 1):
             got = bsu.evaluated_vertices(body, baked["frame_start"] + k)
             M = bm.skin_transforms(cpos[k:k + 1], crot[k:k + 1], bv)[0]
-            want = bm.lbs(rest, idx, w, M)
+            want = skinning.lbs_frame(SimpleNamespace(vertices=rest, indices=idx, weights=w), M)
             worst = max(worst, float(np.linalg.norm(got - want, axis=-1).max()))
         print(f"\n{role}: deformed mesh vs numpy LBS: max {worst / MM:.4f} mm over 4 frames, {len(rest)} vertices")
         assert worst < 1 * MM
 
 
-@needs_models
 def test_render_preview_shows_both_bodies(baked, tmp_path):
     scene = baked["scene"]
     engine = scene.render.engine
@@ -506,7 +495,6 @@ def test_render_preview_shows_both_bodies(baked, tmp_path):
     assert blue.sum() > 50 and red.sum() > 50
 
 
-@needs_models
 def test_rebake_makes_a_new_version(baked):
     coll1 = baked["duet_coll"]
     lead1, _ = _rig(coll1, "leader")
@@ -524,7 +512,6 @@ def test_rebake_makes_a_new_version(baked):
     assert duets[0].hide_render and not duets[1].hide_render
 
 
-@needs_models
 def test_bake_time_60s(baked):
     """Bake time of a 60 s duet (both armatures, bodies, 1800 keys per channel),
     beyond synthesis. Target < 2 s."""
@@ -546,7 +533,6 @@ def test_bake_time_60s(baked):
     assert dt < 10.0
 
 
-@needs_models
 def test_render_preview_video(baked, tmp_path):
     mid = baked["frame_start"] + baked["duet"].n_frames // 2
     out = tmp_path / "video_"
@@ -634,7 +620,6 @@ class _Event:
         self.type, self.value = type, value
 
 
-@needs_models
 def test_modal_synthesis_progress_and_finish(files):
     bsu.fresh_scene()
     _import(files["csv"])
@@ -656,7 +641,6 @@ def test_modal_synthesis_progress_and_finish(files):
     assert len([c for c in bpy.data.collections if c.dancing_points.kind == 'DUET']) == 1
 
 
-@needs_models
 def test_modal_synthesis_escape_leaves_scene_unchanged(files, monkeypatch):
     bsu.fresh_scene()
     _import(files["csv"])
