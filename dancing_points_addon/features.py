@@ -70,16 +70,13 @@ def mapping_target(lead_root_t, lead_roots, lead_tracked, fol_roots, fol_tracked
 def decode_mapping(y: np.ndarray, lead_root_t: np.ndarray):
     """``(B, MAP_OUT)`` -> per dancer (leader, follower): world roots ``(B, FUTURE, 4)``
     and tracked points in their own roots ``(B, FUTURE, 3, 3)``."""
-    y = y.reshape(len(y), FUTURE, 2, 13)
-    out = []
-    for d in range(2):
-        rel = y[:, :, d, :4]
-        rel = rel.copy()
-        n = np.linalg.norm(rel[..., 2:4], axis=-1, keepdims=True)
-        rel[..., 2:4] /= np.maximum(n, 1e-9)
-        roots = root_compose(lead_root_t[:, None], rel)
-        out.append((roots, y[:, :, d, 4:].reshape(len(y), FUTURE, 3, 3)))
-    return out
+    B = len(y)
+    y = y.reshape(B, FUTURE, 2, 13)
+    rel = y[..., :4].copy()
+    rel[..., 2:4] /= np.maximum(np.sqrt(np.einsum("...i,...i->...", rel[..., 2:4], rel[..., 2:4])), 1e-9)[..., None]
+    roots = root_compose(lead_root_t[:, None, None], rel)  # both dancers at once
+    tracked = y[..., 4:].reshape(B, FUTURE, 2, 3, 3)
+    return [(roots[:, :, d], tracked[:, :, d]) for d in range(2)]
 
 
 def pose_features(pos_local, rot_local, contacts) -> np.ndarray:

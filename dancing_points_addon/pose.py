@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .representation import cross, norm
+from .representation import norm
 from .skeleton import PARENTS
 
 N = len(PARENTS)
@@ -33,30 +33,38 @@ def bone_vectors_from_pose(positions: np.ndarray, rotations: np.ndarray) -> np.n
 
 
 def _align(u, v):
-    """Rotations ``(…, 3, 3)`` taking unit vectors ``u`` to ``v`` by the shortest arc."""
-    k = cross(u, v)
-    c = np.einsum("...i,...i->...", u, v)
-    kx = np.zeros(u.shape[:-1] + (3, 3))
-    kx[..., 0, 1], kx[..., 0, 2] = -k[..., 2], k[..., 1]
-    kx[..., 1, 0], kx[..., 1, 2] = k[..., 2], -k[..., 0]
-    kx[..., 2, 0], kx[..., 2, 1] = -k[..., 1], k[..., 0]
-    f = 1.0 / np.maximum(1.0 + c, 1e-9)
-    eye = np.broadcast_to(np.eye(3), kx.shape)
-    return eye + kx + kx @ kx * f[..., None, None]
+    """Rotations ``(…, 3, 3)`` taking unit vectors ``u`` to ``v`` by the shortest arc,
+    as two reflections: across the plane normal to ``u + v`` (u -> −v), then
+    across the plane normal to ``v`` (−v -> v). Undefined only for ``u = −v``."""
+    w = u + v
+    ww = 2.0 / np.maximum(np.einsum("...i,...i->...", w, w), 1e-12)
+    hw = np.eye(3) - (w[..., :, None] * w[..., None, :]) * ww[..., None, None]
+    hv = np.eye(3) - 2.0 * (v[..., :, None] * v[..., None, :])
+    return hv @ hw
+
+
+class PoseRecovery:
+    """:func:`recover_pose` for one skeleton, with its constants precomputed
+    (the runtime calls it once per dancer and frame)."""
+
+    def __init__(self, bone_vectors: np.ndarray):
+        self.bone_vectors = np.asarray(bone_vectors, dtype=np.float64)
+        self.lengths = norm(self.bone_vectors)
+        self.rest_dir = self.bone_vectors / np.maximum(self.lengths[:, None], 1e-12)
+
+    def __call__(self, positions: np.ndarray, rotations: np.ndarray):
+        d = positions - positions[..., _PAR, :]
+        n = norm(d)[..., None]
+        # Direction from positions; a collapsed bone falls back on its rotation.
+        rot_dir = (rotations @ self.rest_dir[:, :, None])[..., 0]
+        dirs = np.where(n > 1e-6, d / np.maximum(n, 1e-12), rot_dir)
+        dirs[..., 0, :] = 0.0
+        out_pos = positions[..., :1, :] + ANCESTORS @ (dirs * self.lengths[:, None])
+        out_rot = rotations.copy()
+        out_rot[..., 1:, :, :] = _align(rot_dir[..., 1:, :], dirs[..., 1:, :]) @ rotations[..., 1:, :, :]
+        return out_pos, out_rot
 
 
 def recover_pose(positions: np.ndarray, rotations: np.ndarray, bone_vectors: np.ndarray):
     """Consistent pose ``(…, 31, 3)``, ``(…, 31, 3, 3)`` from network outputs."""
-    lengths = norm(bone_vectors)
-    d = positions - positions[..., _PAR, :]
-    n = norm(d)[..., None]
-    rest_dir = bone_vectors / np.maximum(lengths[:, None], 1e-12)
-    # Direction from positions; a collapsed bone falls back on its rotation.
-    rot_dir = np.einsum("...nab,nb->...na", rotations, rest_dir)
-    dirs = np.where(n > 1e-6, d / np.maximum(n, 1e-12), rot_dir)
-    dirs[..., 0, :] = 0.0
-    vec = dirs * lengths[:, None]
-    out_pos = positions[..., :1, :] + np.einsum("nk,...kc->...nc", ANCESTORS, vec)
-    out_rot = rotations.copy()
-    out_rot[..., 1:, :, :] = _align(rot_dir[..., 1:, :], dirs[..., 1:, :]) @ rotations[..., 1:, :, :]
-    return out_pos, out_rot
+    return PoseRecovery(bone_vectors)(positions, rotations)

@@ -58,6 +58,14 @@ def heading_vector(device_rot: np.ndarray) -> np.ndarray:
 
 def root_from_head(head_pos: np.ndarray, device_rot: np.ndarray) -> np.ndarray:
     """Roots ``(…, 4)`` from head positions ``(…, 3)`` and device rotations."""
+    if head_pos.ndim == 1:  # one frame: plain floats cost less than array calls
+        r = device_rot
+        f1 = -float(r[1, 2])
+        dx = -float(r[0, 2]) - float(r[0, 1]) * f1
+        dz = -float(r[2, 2]) - float(r[2, 1]) * f1
+        n = (dx * dx + dz * dz) ** 0.5
+        c, s = (dz / n, dx / n) if n > 1e-9 else (1.0, 0.0)
+        return np.array([float(head_pos[0]), float(head_pos[2]), c, s])
     h = heading_vector(device_rot)
     # θ measured from +Z towards +X: (sin θ, cos θ) = (hx, hz)
     return np.stack([head_pos[..., 0], head_pos[..., 2], h[..., 1], h[..., 0]], axis=-1)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import features as F
-from .pose import bone_vectors_from_pose, recover_pose
+from .pose import PoseRecovery, bone_vectors_from_pose
 from .representation import root_compose, root_from_head, rot6d_to_matrix, rot_to_world, to_local, to_world
 from .skeleton import JOINT_NAMES, TRACKED
 
@@ -146,7 +146,7 @@ class Synthesizer:
         self.bone_vectors = {r: bone_vectors_from_pose(p[:93].reshape(31, 3),
                                                        rot6d_to_matrix(p[93:279].reshape(31, 6)))
                              for r, p in self.default_pose.items()}
-        self._bone_vectors = (self.bone_vectors["leader"], self.bone_vectors["follower"])
+        self._recovery = (PoseRecovery(self.bone_vectors["leader"]), PoseRecovery(self.bone_vectors["follower"]))
         self.reset()
 
     @staticmethod
@@ -253,7 +253,7 @@ class Synthesizer:
     def _recover(self, who, pos, rot, contacts, targets):
         """Pose recovery (Appendix B) of dancer ``who`` (0 leader, 1 follower):
         a consistent skeleton pose, foot locking, then head/wrist IK (leader)."""
-        pos, rot = recover_pose(pos, rot, self._bone_vectors[who])
+        pos, rot = self._recovery[who](pos, rot)
         if self._lockers is not None:
             pos, rot = self._lockers[who].step(pos, rot, contacts)
         if targets is not None and self._effector is not None:
