@@ -69,21 +69,33 @@ class _Net(nn.Module):
         return pose_base(x, self.n_out, self.pose_dim) if self.pose_dim else 0.0
 
     def fit_normalizers(self, x, y):
-        self.nx.fit(x)
-        self.ny.fit(y - self._base(x))
+        """Statistics of the inputs and (residual) targets the loss will see,
+        perturbed states included."""
+        g = torch.get_rng_state()
+        torch.manual_seed(1234)
+        xc = self.corrupt_pose(x, force=True)
+        torch.set_rng_state(g)
+        self.nx.fit(xc)
+        self.ny.fit(y - self._base(xc))
 
-    def corrupt_pose(self, x):
-        """Training only: perturb the *current pose* input (in units of its std,
-        a random strength per sample up to ``pose_noise``). The residual base is
-        built from the perturbed pose too, so the target teaches the network to
-        pull a drifted state back to what the three-point keys say: the state it
-        meets in a closed-loop rollout is its own, imperfect, prediction."""
-        if not (self.training and self.pose_dim and self.pose_noise > 0):
+    # Perturbation scale of the current-pose input, per feature group, in the
+    # features' own units: metres for positions, 6D entries, contact values.
+    POSE_NOISE_UNITS = ((0, 93, 0.04), (93, 279, 0.08), (279, 283, 0.3))
+
+    def corrupt_pose(self, x, force=False):
+        """Training only: perturb the *current pose* input by a random strength per
+        sample (up to ``pose_noise`` × :data:`POSE_NOISE_UNITS`). The residual base
+        is built from the perturbed pose too, so the target teaches the network to
+        pull a drifted state back to what the three-point keys say: in a
+        closed-loop rollout the state is its own, imperfect, prediction."""
+        if not ((self.training or force) and self.pose_dim and self.pose_noise > 0):
             return x
-        d = self.pose_dim
         scale = torch.rand(x.shape[0], 1, device=x.device) * self.pose_noise
-        noise = torch.randn(x.shape[0], d, device=x.device) * self.nx.std[:d] * scale
-        return torch.cat([x[:, :d] + noise, x[:, d:]], dim=1)
+        unit = torch.zeros(self.pose_dim, device=x.device)
+        for a, b, u in self.POSE_NOISE_UNITS:
+            unit[a:b] = u
+        noise = torch.randn(x.shape[0], self.pose_dim, device=x.device) * unit * scale
+        return torch.cat([x[:, :self.pose_dim] + noise, x[:, self.pose_dim:]], dim=1)
 
     def loss(self, x, y):
         x = self.corrupt_pose(x)
