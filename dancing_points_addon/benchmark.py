@@ -83,7 +83,7 @@ def compute_floor(model_dir, repeats=2000):
     return float(np.median(times)), macs
 
 
-def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True, hand_ik=False):
+def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True, hand_ik=True):
     from .runtime import MODEL_DIR
     from .resample import resample_take
     from .take import read_take

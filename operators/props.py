@@ -64,7 +64,7 @@ class DP_SceneSettings(bpy.types.PropertyGroup):
     )
     foot_lock: BoolProperty(name="Foot Locking", default=True,
                             description="Pin feet in contact with the floor (contact-based IK)")
-    hand_ik: BoolProperty(name="Hand IK", default=False,
+    hand_ik: BoolProperty(name="Hand IK", default=True,
                           description="Put the leader's head and wrists exactly on the tracked points")
     preview_format: EnumProperty(
         name="Format", default='PNG',

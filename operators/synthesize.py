@@ -69,7 +69,7 @@ def _load_nets(model_dir, threads):
     return nets
 
 
-def make_synthesizer(model_dir, threads=1, height=None, foot_lock=True, hand_ik=False):
+def make_synthesizer(model_dir, threads=1, height=None, foot_lock=True, hand_ik=True):
     """``(Synthesizer, warnings)``; options the core cannot provide are switched
     off with a warning rather than failing."""
     from ..dancing_points_addon import runtime
@@ -97,7 +97,7 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
                          options={'SKIP_SAVE'})
     foot_lock: BoolProperty(name="Foot Locking", default=True,
                             description="Pin feet in contact with the floor (contact-based IK)")
-    hand_ik: BoolProperty(name="Hand IK", default=False,
+    hand_ik: BoolProperty(name="Hand IK", default=True,
                           description="Put the leader's head and wrists exactly on the tracked points")
     model_dir: StringProperty(name="Model Folder", subtype='DIR_PATH', options={'HIDDEN', 'SKIP_SAVE'},
                               description="Folder with the ONNX models (empty: $DP_MODEL_DIR, the "
