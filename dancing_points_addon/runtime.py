@@ -41,6 +41,13 @@ def _quat_matrix(q) -> np.ndarray:
                      [n * (x * z - w * y), n * (y * z + w * x), 1 - n * (x * x + y * y)]])
 
 
+def _blend_root(a, b, w):
+    """Root ``w`` of the way from ``a`` to ``b`` (position linear, heading normalised)."""
+    out = a + w * (b - a)
+    out[2:] /= max(float(np.hypot(out[2], out[3])), 1e-9)
+    return out
+
+
 class OnnxNet:
     """One ONNX network on onnxruntime's CPU provider, batch 1."""
 
@@ -106,14 +113,18 @@ class _Dancer:
         self.root = np.asarray(root, dtype=np.float64).copy()
         self.pose = self.default_pose.copy()
 
-    def advance(self, key_roots, key_tracked, observed_root=None):
+    def advance(self, key_roots, key_tracked, observed_root=None, pull=None):
         """One tracker step; returns world positions, rotations, contacts of the new
         frame. ``observed_root``: the new frame's root when the input shows it (the
-        leader's head), used instead of the predicted one so the root cannot drift."""
+        leader's head), used instead of the predicted one so the root cannot drift.
+        ``pull = (root, w)``: move the predicted root the share ``w`` of the way to
+        ``root`` (a complementary filter: no drift, little jitter)."""
         x = F.tracking_input(self.pose[None], self.root[None], key_roots[None], key_tracked[None])
         y = self.net(x).astype(np.float64)
         rel, pos, rot, con = F.split_tracking_output(y[:, :F.KEY_OUT])
         root = root_compose(self.root, rel[0, 0]) if observed_root is None else observed_root
+        if pull is not None and pull[1] > 0:
+            root = _blend_root(root, pull[0], pull[1])
         pos_l, rot_l = pos[0, 0], rot[0, 0]
         con = np.clip(con[0, 0], 0.0, 1.0)
         self.root = root
@@ -140,7 +151,7 @@ class Synthesizer:
 
     def __init__(self, model_dir: str | None = None, threads: int = 1, height: float | None = None,
                  foot_lock: bool = True, hand_ik: bool = True, nets: dict | None = None,
-                 anchor_root: bool = True, feedback: str = "network"):
+                 anchor_leader: bool = True, anchor_follower: float = 0.1, feedback: str = "network"):
         model_dir = model_dir or MODEL_DIR
         if nets is None:
             nets = {k: OnnxNet(os.path.join(model_dir, f), threads) for k, f in MODEL_FILES.items()}
@@ -148,7 +159,7 @@ class Synthesizer:
         self.height = height
         self.foot_lock = foot_lock
         self.hand_ik = hand_ik
-        self.anchor_root = anchor_root
+        self.anchor_leader, self.anchor_follower = anchor_leader, anchor_follower
         self.feedback = feedback
         # Rigid skeleton: the neck may turn but the spine may not stretch, so a
         # baked armature (fixed bone lengths) shows exactly this pose.
@@ -254,8 +265,8 @@ class Synthesizer:
         lk_roots, lk_tr = self._leader_keys(root, cur_local, l_roots, l_tr)
         fk_roots, fk_tr = self._follower_keys(f_roots, f_tr, l_roots, l_tr)
         self.prev_follower = (f_roots[0], f_tr[0])
-        lp, lr, lc = self.leader.advance(lk_roots, lk_tr, root if self.anchor_root else None)
-        fp, fr, fc = self.follower.advance(fk_roots, fk_tr, fk_roots[0] if self.anchor_root else None)
+        lp, lr, lc = self.leader.advance(lk_roots, lk_tr, root if self.anchor_leader else None)
+        fp, fr, fc = self.follower.advance(fk_roots, fk_tr, pull=(fk_roots[0], self.anchor_follower))
         lp, lr = self._recover(0, lp, lr, lc, tracked_s)
         fp, fr = self._recover(1, fp, fr, fc, None)
         if self.feedback == "final":  # the next step starts from the pose the user sees

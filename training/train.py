@@ -29,9 +29,13 @@ from .export import export
 from .model import MappingNet, TrackingNet, VanillaTracker
 
 
-def default_pose(x: np.ndarray) -> list:
+def default_pose(x: np.ndarray, where=None, clips=None) -> list:
     """Pose features of the train sample nearest the mean pose (normalised): the
-    runtime's start-up pose, placed under the head."""
+    runtime's start-up pose, placed under the head. Its skeleton becomes the
+    runtime's, so it is drawn from the unmirrored clips (a mirrored body has its
+    left and right bone lengths swapped)."""
+    if where is not None:
+        x = x[~np.array([clips[int(c)].mirrored for c in where[:, 0]])]
     pose = x[:, :F.POSE_DIM].astype(np.float64)
     z = (pose - pose.mean(0)) / (pose.std(0) + 1e-6)
     return pose[int(np.argmin((z ** 2).sum(1)))].round(6).tolist()
@@ -160,7 +164,8 @@ def main(argv=None):
             x2, y2 = np.concatenate([x, xr]), np.concatenate([y, y[idx]])
             info2 = train_model(m, x2, y2, cfg["rollout_epochs"], device=device, log=log, seed=args.seed + 1)
             info.update(stage2=info2, seconds=info1["seconds"] + info2["seconds"])
-        meta = {"hidden": cfg["track_hidden"], "role": role, "train": info, "default_pose": default_pose(x)}
+        meta = {"hidden": cfg["track_hidden"], "role": role, "train": info,
+                "default_pose": default_pose(x, where, clips)}
         meta.update(extra or {})
         export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), meta)
