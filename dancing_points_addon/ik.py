@@ -366,8 +366,8 @@ class FootLocker:
     smoothly even when the locked leg was stretched straight and the
     prediction is bent.
     A lock whose predicted point drifts farther than ``max_drift`` (m) from it
-    is released and that point cannot lock again until its contact
-    probability has fallen below ``off``.
+    is released; that point can lock again when its contact probability has
+    fallen below ``off`` or the release blend is over.
     When the lock point is out of the leg's reach the leg is stretched
     straight towards it (the ankle then misses the lock by the shortfall).
     """
@@ -443,14 +443,16 @@ class FootLocker:
                 st.on_a = False
         elif ca > self.on:
             st.on_a = True
-        if not st.on_a:
+        # a drift-released point may lock again once its release blend is over
+        # (a sliding prediction with a steady contact then gets re-planted)
+        if not st.on_a or (st.lock_a is None and st.k >= N):
             st.armed_a = True
         if st.on_b:
             if cb < self.off:
                 st.on_b = False
         elif cb > self.on:
             st.on_b = True
-        if not st.on_b:
+        if not st.on_b or (st.lock_b is None and st.k >= N):
             st.armed_b = True
 
         la, lb = st.lock_a, st.lock_b

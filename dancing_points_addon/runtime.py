@@ -20,9 +20,9 @@ import numpy as np
 
 from . import features as F
 from .pose import PoseRecovery, bone_vectors_from_pose
-from .representation import (root_compose, root_from_head, rot6d_to_matrix, rot_to_local, rot_to_world,
-                             to_local, to_world)
-from .skeleton import JOINT_NAMES, TRACKED
+from .representation import (root_compose, root_from_head, root_relative, rot6d_to_matrix, rot_to_local,
+                             rot_to_world, to_local, to_world)
+from .skeleton import FEET, JOINT_NAMES, TRACKED
 
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
 MODEL_FILES = {"mapping": "mapping.onnx", "leader": "tracker_leader.onnx", "follower": "tracker_follower.onnx"}
@@ -30,6 +30,8 @@ MODEL_FILES = {"mapping": "mapping.onnx", "leader": "tracker_leader.onnx", "foll
 # the standing height it corresponds to: calibration uses their ratio.
 TRAIN_HEAD_HEIGHT = 1.50
 TRAIN_HEIGHT = 1.70
+CALIBRATION_FRAMES = 30  # the first second at 30 Hz
+KIN_HEIGHT, KIN_SPEED, KIN_FLOOR_RISE = 0.035, 1.5, 0.001  # kinematic contacts: m, m/s, m per frame
 
 
 def _quat_matrix(q) -> np.ndarray:
@@ -88,6 +90,7 @@ class Duet:
     follower_rotations: np.ndarray
     follower_contacts: np.ndarray
     fps: float = F.FPS
+    bone_vectors: dict | None = None  # each dancer's skeleton (rest bone vectors, output scale)
 
     @property
     def n_frames(self):
@@ -189,7 +192,11 @@ class Synthesizer:
         self.prev_follower = None  # (root, tracked_local) predicted for frame t
         self.last_valid = None  # last valid (head position, head rotation), input space
         self.last_hand = [None, None]  # last valid (hand position, head root) per hand
+        self.prev_leader_pred = None  # the mapping's prediction of the next frame (root, tracked local)
         self._head_heights = []
+        self._calibration = None
+        self._prev_feet = [None, None]
+        self._floor = [None, None]
         self._lockers = None
         self._effector = None
         if self.foot_lock or self.hand_ik:
@@ -200,40 +207,70 @@ class Synthesizer:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
 
     def scale(self) -> float:
-        """Tracker scale: training height over the user's (SPEC/paper §7 calibration)."""
+        """Tracker scale: training height over the user's (paper §7 calibration).
+
+        Without a height, the user's head height is the median over the first
+        second of the take (:data:`CALIBRATION_FRAMES`); the live loop uses the
+        median so far until then, and the scale is fixed afterwards, so the
+        output skeleton keeps its size."""
         if self.height:
             return TRAIN_HEIGHT / float(self.height)
+        if self._calibration is not None:
+            return self._calibration
         if self._head_heights:
-            return TRAIN_HEAD_HEIGHT / float(np.median(self._head_heights))
+            s = TRAIN_HEAD_HEIGHT / float(np.median(self._head_heights))
+            if len(self._head_heights) >= CALIBRATION_FRAMES:
+                self._calibration = s
+            return s
         return 1.0
+
+    def output_bone_vectors(self) -> dict:
+        """Each dancer's skeleton at the output's scale (what the poses are made of)."""
+        return {r: bv / self.scale() for r, bv in self.bone_vectors.items()}
 
     # -- input cleaning --------------------------------------------------------
     def _clean(self, positions, quats, valid):
-        """Hold lost devices: the head keeps its last pose, a hand keeps its last
-        place relative to the head's floor frame (so it travels with the body).
-        Returns tracked positions (3, 3), head device rotation and its root."""
+        """Fill lost devices (SPEC §3 gaps) from the mapping network's last
+        prediction of this frame (the leader's future trajectory): the head
+        follows the predicted root and height, turning its last orientation by the
+        predicted change of heading; a hand takes its predicted place relative to
+        the head. Before any prediction exists, devices are held. Returns tracked
+        positions (3, 3), the head device rotation and its root (input space)."""
+        pred = self.prev_leader_pred
+        inv = 1.0 / self.scale()
         if valid[0]:
             head_pos = np.asarray(positions[0], dtype=np.float64)
             head_rot = _quat_matrix(quats[0])
+            root = root_from_head(head_pos, head_rot)
+        elif pred is not None and self.last_valid is not None:
+            root = pred[0] * np.array([inv, inv, 1.0, 1.0])
+            head_pos = to_world(pred[1][:1] * inv, root)[0]
+            last_rot = self.last_valid[1]
+            last_root = root_from_head(self.last_valid[0], last_rot)
+            turn = root_relative(last_root, root)  # heading change as (cos, sin)
+            head_rot = np.array([[turn[2], 0.0, turn[3]], [0.0, 1.0, 0.0], [-turn[3], 0.0, turn[2]]]) @ last_rot
         elif self.last_valid is not None:
             head_pos, head_rot = self.last_valid
+            root = root_from_head(head_pos, head_rot)
         else:
             head_pos, head_rot = np.array([0.0, TRAIN_HEAD_HEIGHT, 0.0]), np.diag([-1.0, 1.0, -1.0])
-        self.last_valid = (head_pos, head_rot)
-        root = root_from_head(head_pos, head_rot)
+            root = root_from_head(head_pos, head_rot)
+        if valid[0]:
+            self.last_valid = (head_pos, head_rot)
         tracked = np.empty((3, 3))
         tracked[0] = head_pos
         for i in (1, 2):
             if valid[i]:
                 tracked[i] = positions[i]
                 self.last_hand[i - 1] = (tracked[i].copy(), root)
-            else:
-                last = self.last_hand[i - 1]
-                if last is None:  # never seen: the default pose's hand
-                    local = self.default_pose["leader"][:93].reshape(31, 3)[TRACKED[i]]
-                else:
-                    local = to_local(last[0][None], last[1])[0]
-                tracked[i] = to_world(local[None], root)[0]
+                continue
+            if pred is not None:
+                local = pred[1][i] * inv
+            elif self.last_hand[i - 1] is not None:
+                local = to_local(self.last_hand[i - 1][0][None], self.last_hand[i - 1][1])[0]
+            else:  # never seen: the default pose's hand
+                local = self.default_pose["leader"][:93].reshape(31, 3)[TRACKED[i]] * inv
+            tracked[i] = to_world(local[None], root)[0]
         return tracked, head_rot, root
 
     # -- one frame -------------------------------------------------------------
@@ -258,6 +295,7 @@ class Synthesizer:
         y = self.nets["mapping"](F.mapping_input(self.hist_roots[None], self.hist_tracked[None]))
         (l_roots, l_tr), (f_roots, f_tr) = F.decode_mapping(y.astype(np.float64), root[None])
         l_roots, l_tr, f_roots, f_tr = l_roots[0], l_tr[0], f_roots[0], f_tr[0]
+        self.prev_leader_pred = (l_roots[0], l_tr[0])
         if self.t == 0:
             self.follower.place(f_roots[0])
             self.prev_follower = (f_roots[0], f_tr[0])
@@ -281,10 +319,27 @@ class Synthesizer:
         a consistent skeleton pose, foot locking, then head/wrist IK (leader)."""
         pos, rot = self._recovery[who](pos, rot)
         if self._lockers is not None:
+            contacts = np.maximum(contacts, self._kinematic_contacts(who, pos))
             pos, rot = self._lockers[who].step(pos, rot, contacts)
         if targets is not None and self._effector is not None:
             pos, rot = self._effector.step(pos, rot, targets)
         return pos, rot
+
+    def _kinematic_contacts(self, who, pos):
+        """Contact evidence from the predicted motion itself (causal): a foot point
+        low above its floor (the lowest height seen lately, rising 3 cm/s) and slow
+        since the last frame counts as planted, whatever the network's contact
+        output says."""
+        feet = pos[FEET]
+        prev = self._prev_feet[who]
+        self._prev_feet[who] = feet
+        floor = self._floor[who]
+        floor = feet[:, 1].copy() if floor is None else np.minimum(floor + KIN_FLOOR_RISE, feet[:, 1])
+        self._floor[who] = floor
+        if prev is None:
+            return np.zeros(4)
+        speed = np.sqrt(((feet - prev)[:, [0, 2]] ** 2).sum(-1)) * F.FPS
+        return ((feet[:, 1] - floor < KIN_HEIGHT) & (speed < KIN_SPEED)).astype(np.float64)
 
     # mapping index of frame t − 1 + k for the keys k >= 2 (index 0 is frame t + 1)
     _OFF = F.TRACK_KEYS[1:] - 2
@@ -306,6 +361,11 @@ class Synthesizer:
 
         tk = resample_take(take, F.FPS)
         self.reset()
+        if self.height is None:  # calibrate on the take's first second before the loop
+            first = tk.valid[:CALIBRATION_FRAMES, 0]
+            if first.any():
+                heights = tk.positions[:CALIBRATION_FRAMES, 0, 1][first]
+                self._calibration = TRAIN_HEAD_HEIGHT / float(np.median(heights))
         T = tk.n_frames
         out = {k: np.empty((T, 31, 3)) for k in ("lp", "fp")}
         out.update({k: np.empty((T, 31, 3, 3)) for k in ("lr", "fr")})
@@ -318,7 +378,8 @@ class Synthesizer:
             if progress is not None and (t % 30 == 0 or t == T - 1):
                 if progress(t + 1, T) is False:
                     raise KeyboardInterrupt("cancelled")
-        return Duet(tk.time, out["lp"], out["lr"], out["lc"], out["fp"], out["fr"], out["fc"])
+        return Duet(tk.time, out["lp"], out["lr"], out["lc"], out["fp"], out["fr"], out["fc"],
+                    bone_vectors=self.output_bone_vectors())
 
 
 def save_npz(duet: Duet, path) -> None:
@@ -329,10 +390,11 @@ def save_npz(duet: Duet, path) -> None:
         np.savez_compressed(f, **duet.arrays())
 
 
-def duet_motions(duet: Duet, bone_vectors: dict):
+def duet_motions(duet: Duet, bone_vectors: dict | None = None):
     """The two dancers as SPEC :class:`~.skeleton.Motion` clips (for BVH export)."""
     from .skeleton import Motion
 
+    bone_vectors = bone_vectors or duet.bone_vectors
     return {role: Motion(getattr(duet, f"{role}_positions"), getattr(duet, f"{role}_rotations"), duet.fps,
                          bone_vectors[role], source=role)
             for role in ("leader", "follower")}
