@@ -118,7 +118,7 @@ def cmd_synthesize(args) -> int:
     take = load_input_from_args(args)
     t0 = time.perf_counter()
     synth = Synthesizer(model_dir=args.models, threads=args.threads, height=args.height or take.height,
-                        foot_lock=not args.no_foot_lock, hand_ik=args.hand_ik)
+                        foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik)
     duet = synth.synthesize(take)
     if ext == ".npz":
         save_npz(duet, out)
@@ -129,7 +129,7 @@ def cmd_synthesize(args) -> int:
 
         written = []
         try:
-            for role, motion in duet_motions(duet, synth.bone_vectors).items():
+            for role, motion in duet_motions(duet).items():
                 path = f"{base}_{role}.bvh"
                 existed = os.path.exists(path)
                 with atomic_output(path, "w", newline="\n") as f:
@@ -157,7 +157,8 @@ def _parser_synthesize(sub) -> None:
     p.add_argument("--threads", type=int, default=1, metavar="N", help="onnxruntime threads (default 1)")
     p.add_argument("--models", default=None, metavar="DIR", help="folder with the ONNX models")
     p.add_argument("--no-foot-lock", action="store_true", help="turn contact-based foot locking off")
-    p.add_argument("--hand-ik", action="store_true", help="put the leader's head and wrists on the input")
+    p.add_argument("--no-hand-ik", action="store_true",
+                   help="leave the leader's head and wrists where the network puts them (no IK onto the input)")
     p.set_defaults(func=cmd_synthesize)
 
 
@@ -167,7 +168,7 @@ def cmd_benchmark(args) -> int:
     from .benchmark import report, run
 
     res = run(frames=args.frames, threads=args.threads, model_dir=args.models,
-              foot_lock=not args.no_foot_lock, hand_ik=args.hand_ik)
+              foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik)
     print(report(res))
     return EXIT_OK
 
@@ -181,35 +182,38 @@ def _parser_benchmark(sub) -> None:
     p.add_argument("--threads", type=int, default=1, metavar="N", help="onnxruntime threads (default 1)")
     p.add_argument("--models", default=None, metavar="DIR", help="folder with the ONNX models")
     p.add_argument("--no-foot-lock", action="store_true")
-    p.add_argument("--hand-ik", action="store_true")
+    p.add_argument("--no-hand-ik", action="store_true")
     p.set_defaults(func=cmd_benchmark)
 
 
-# --------------------------------------------------------------------------- batch
+# --------------------------------------------------------------------------- build-extension
 
-def cmd_batch(args) -> int:
-    from .batch import run
+def cmd_build_extension(args) -> int:
+    from .build_extension import PLATFORMS, build
 
-    return run(args)
+    platforms = args.platform or list(PLATFORMS)
+    bad = [p for p in platforms if p not in PLATFORMS]
+    if bad:
+        raise InputError(None, f"unknown platform {bad[0]!r} (one of {', '.join(PLATFORMS)})")
+    zips = build(args.output, wheels=not args.no_wheels, platforms=platforms)
+    print("\n".join(zips))
+    return EXIT_OK
 
 
-def _parser_batch(sub) -> None:
-    from .batch import add_arguments
-
-    p = sub.add_parser("batch", help="many takes (files or folders) -> one duet each, in parallel",
-                       description="Convert every take (.csv, .bvh, .amc; folders are searched "
-                                   "recursively) to a baked duet, one output per take named after it, "
-                                   "on --jobs worker processes. A bad file is reported and skipped; the "
-                                   "exit status is 1 if any file failed, 130 when interrupted (Ctrl-C: "
-                                   "no partial outputs are left; --resume finishes the rest). "
-                                   "--format blend/fbx and --render need the bpy module.")
-    add_arguments(p)
-    p.set_defaults(func=cmd_batch)
+def _parser_build_extension(sub) -> None:
+    p = sub.add_parser("build-extension", help="build the extension zips with Blender's tool",
+                       description="Build the extension with Blender's own 'extension build', one zip per "
+                                   "platform with the ONNX Runtime wheels bundled, and validate each zip.")
+    p.add_argument("-o", "--output", default="dist", metavar="DIR", help="output folder (default dist)")
+    p.add_argument("--platform", action="append", metavar="NAME",
+                   help="linux-x64, windows-x64 or macos-arm64 (repeatable; default all three)")
+    p.add_argument("--no-wheels", action="store_true", help="one zip without bundled wheels")
+    p.set_defaults(func=cmd_build_extension)
 
 
 # --------------------------------------------------------------------------- main
 
-PARSERS = [_parser_extract, _parser_synthesize, _parser_benchmark, _parser_batch]
+PARSERS = [_parser_extract, _parser_synthesize, _parser_benchmark, _parser_build_extension]
 
 
 def build_parser() -> argparse.ArgumentParser:
