@@ -6,6 +6,8 @@ import tomllib
 
 import bpy
 
+from . import retarget
+
 _MANIFEST = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "blender_manifest.toml")
 _version = None
 
@@ -116,4 +118,5 @@ class VIEW3D_PT_dancing_points_preview(_SubPanel, bpy.types.Panel):
 classes = (VIEW3D_PT_dancing_points, VIEW3D_PT_dancing_points_take,
            VIEW3D_PT_dancing_points_synthesis, VIEW3D_PT_dancing_points_preview)
 
+classes += retarget.classes
 register, unregister = bpy.utils.register_classes_factory(classes)

@@ -1,0 +1,729 @@
+"""Retargeting the synthesised duet onto other characters (``dancing_points.retarget``).
+
+Two parts:
+
+- bpy-free: bone-name conventions, presets, the glTF meshopt decoder, and the
+  alignment of a rig in another rest pose (numpy only);
+- in Blender (the extension enabled as in ``test_blender_addon``): a
+  synthesised duet (5 s of CMU salsa 60_10) retargeted onto the two avatars of
+  ``../shared/assets`` (imported with Blender's glTF importer, after decoding
+  their meshopt compression) and onto two rigs this test builds (Unreal names,
+  A-pose, other bone rolls and Euler rotation modes, the objects turned and
+  moved). Every frame is evaluated by Blender and checked: the landmarks (hips,
+  wrists, ankles, skull base) follow the source's after normalising by height
+  (mean < 3 cm), the foot points planted on the source do not slide (< 1 cm),
+  no bone turns more than 90 degrees between frames, the meshes deform, the
+  rest pose and the rig's own action are untouched, held hands stay together.
+
+  Normalising by height: positions horizontally about the duet's centre and
+  vertically above the floor, divided by each character's height (its skull
+  base, SPEC §2's head point, standing); errors are given at the source's size.
+  The hips' and ankles' heights are counted from their standing heights (which
+  differ between rigs by where they put these joints and by the leg-to-height
+  proportion: the pelvis height follows the leg length, by design); the raw
+  figures are printed as well.
+
+Models: ``$DP_MODEL_DIR``, else the repository's ``models/``, else ``/tmp/tiny_models``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import numpy as np
+import pytest
+
+from conftest import ASSETS, ROOT, SALSA
+from dancing_points_addon import gltf_meshopt
+from dancing_points_addon import retarget as rt
+
+MODEL_FILES = ("mapping.onnx", "tracker_leader.onnx", "tracker_follower.onnx")
+AVATARS = {"leader": "White_M_1_Casual.glb", "follower": "White_F_1_Casual.glb"}
+# The take: seconds 10-15 of CMU salsa 60_10 (the dancers hold hands in it).
+START, SECONDS = 10.0, 5.0
+CM = 1e-2
+
+
+# --------------------------------------------------------------------------- bpy-free
+
+def test_conventions_detected_and_mapped():
+    mixamo = ["mixamorig:" + n for n in ("Hips", "Spine", "Spine1", "Spine2", "Neck", "Head", "LeftShoulder",
+                                           "LeftArm", "LeftForeArm", "LeftHand", "RightShoulder", "RightArm",
+                                           "RightForeArm", "RightHand", "LeftUpLeg", "LeftLeg", "LeftFoot",
+                                           "LeftToeBase", "RightUpLeg", "RightLeg", "RightFoot", "RightToeBase")]
+    m, conv = rt.auto_mapping(mixamo)
+    assert conv == "mixamo"
+    assert m["mixamorig:Hips"] == "root" and m["mixamorig:LeftForeArm"] == "lradius+lwrist"
+    assert m["mixamorig:Neck"] == "lowerneck+upperneck"
+    # Without the prefix: the same mapping.
+    m2, conv2 = rt.auto_mapping([n.split(":")[1] for n in mixamo])
+    assert conv2 == "mixamo" and len(m2) == len(m)
+    # CMU BVH shares names with Mixamo but means other bones.
+    cmu = ["Hips", "LHipJoint", "LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase", "RHipJoint", "RightUpLeg",
+           "RightLeg", "RightFoot", "RightToeBase", "LowerBack", "Spine", "Spine1", "Neck", "Neck1", "Head",
+           "LeftShoulder", "LeftArm", "LeftForeArm", "LeftHand", "RightShoulder", "RightArm", "RightForeArm",
+           "RightHand"]
+    m, conv = rt.auto_mapping(cmu)
+    assert conv == "cmu_bvh" and m["Spine"] == "upperback" and m["LeftHand"] == "lwrist"
+    rigify = ["DEF-spine", "DEF-spine.001", "DEF-spine.002", "DEF-spine.003", "DEF-spine.004", "DEF-spine.005",
+              "DEF-spine.006", "DEF-thigh.L", "DEF-thigh.L.001", "DEF-shin.L", "DEF-shin.L.001", "DEF-foot.L",
+              "DEF-thigh.R", "DEF-thigh.R.001", "DEF-shin.R", "DEF-shin.R.001", "DEF-foot.R", "DEF-upper_arm.L"]
+    m, conv = rt.auto_mapping(rigify)
+    assert conv == "rigify" and m["DEF-thigh.L.001"] == "lfemur" and m["DEF-spine.006"] == "head"
+    # A 5-bone UE5 spine is mapped as one chain on the 3-bone source spine.
+    ue5 = ["root", "pelvis", "spine_01", "spine_02", "spine_03", "spine_04", "spine_05", "neck_01", "neck_02",
+           "head", "thigh_l", "calf_l", "foot_l", "ball_l", "thigh_r", "calf_r", "foot_r", "ball_r"]
+    m, conv = rt.auto_mapping(ue5)
+    assert conv == "unreal" and "root" not in m and m["pelvis"] == "root"
+    assert {m["spine_0%d" % i] for i in range(1, 6)} == {"lowerback+upperback+thorax"}
+    assert m["neck_01"] == "lowerneck" and m["neck_02"] == "upperneck"
+
+
+def test_preset_round_trip_and_errors(tmp_path):
+    presets = rt.builtin_conventions()
+    assert {"mixamo", "rigify", "unreal", "cmu_bvh", "cmu_asf"} <= set(presets)
+    path = tmp_path / "map.json"
+    mapping = {"pelvis": "root", "thigh_l": "lfemur", "lowerarm_l": "lradius+lwrist"}
+    rt.save_preset(path, mapping, name="mine")
+    back = rt.load_preset(path)
+    assert back["bones"] == mapping and back["name"] == "mine"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"bones": {"x": "lfemur+lhumerus"}}))
+    with pytest.raises(rt.RetargetError, match="not the child"):
+        rt.load_preset(bad)
+    bad.write_text(json.dumps({"bones": {"x": "knee"}}))
+    with pytest.raises(rt.RetargetError, match="unknown source bone"):
+        rt.load_preset(bad)
+    with pytest.raises(rt.RetargetError, match="exactly one bone mapped to 'root'"):
+        rt.validate_mapping({"thigh_l": "lfemur"}, ["thigh_l"])
+
+
+def _fake_meshopt_stream():
+    """A small attribute stream encoded by hand after the extension's spec
+    (Appendix A): 16 elements of 4 bytes, one group per byte lane in 2-bit
+    sentinel encoding (large deltas stored as extra bytes)."""
+    rng = np.random.default_rng(0)
+    elems = np.cumsum(rng.integers(-3, 4, size=(16, 4)), axis=0) % 256
+    deltas = np.diff(np.vstack([np.zeros((1, 4), dtype=np.int64), elems]), axis=0)  # from the zero baseline
+    out = bytearray([0xA0])
+    for k in range(4):
+        signed = [(int(v) + 128) % 256 - 128 for v in deltas[:, k]]  # 8-bit wrap-around delta
+        zz = [2 * v if v >= 0 else -2 * v - 1 for v in signed]  # zigzag
+        out.append(1)  # group header: bits 1 (2-bit sentinel encoding)
+        packed, extra = [], []
+        for i in range(0, 16, 4):
+            byte = 0
+            for v in zz[i:i + 4]:
+                byte = (byte << 2) | min(v, 3)
+                if v >= 3:
+                    extra.append(v)
+            packed.append(byte)
+        out += bytes(packed) + bytes(extra)
+    out += bytes(32)  # tail: the (zero) baseline element, padded to 32 bytes
+    return bytes(out), elems.astype(np.uint8)
+
+
+def test_meshopt_attribute_decoder_on_a_hand_encoded_stream():
+    data, want = _fake_meshopt_stream()
+    got = gltf_meshopt.decode_attributes(data, 16, 4)
+    np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.skipif(not (ASSETS / AVATARS["leader"]).exists(), reason="avatars not found")
+def test_meshopt_glb_decodes_to_valid_geometry(tmp_path):
+    """The avatars' meshopt streams decode to in-range indices and unit normals."""
+    doc, binary = gltf_meshopt.read_glb(ASSETS / AVATARS["follower"])
+    assert "EXT_meshopt_compression" in doc["extensionsRequired"]
+    out = gltf_meshopt.decompress_glb(ASSETS / AVATARS["follower"], tmp_path / "f.glb")
+    doc2, bin2 = gltf_meshopt.read_glb(out)
+    assert "EXT_meshopt_compression" not in doc2.get("extensionsUsed", [])
+    prim = doc2["meshes"][0]["primitives"][0]
+    acc = doc2["accessors"]
+    pos = acc[prim["attributes"]["POSITION"]]
+    idx = acc[prim["indices"]]
+    bv = doc2["bufferViews"][idx["bufferView"]]
+    dt = {5123: np.uint16, 5125: np.uint32}[idx["componentType"]]
+    ind = np.frombuffer(bin2, dtype=dt, count=idx["count"], offset=bv["byteOffset"] + idx.get("byteOffset", 0))
+    assert ind.max() < pos["count"] and len(np.unique(ind)) > 0.9 * pos["count"]
+    nrm = acc[prim["attributes"]["NORMAL"]]
+    bvn = doc2["bufferViews"][nrm["bufferView"]]
+    raw = np.frombuffer(bin2, dtype=np.int8, count=nrm["count"] * 4,
+                        offset=bvn["byteOffset"] + nrm.get("byteOffset", 0)).reshape(-1, 4)[:, :3] / 127.0
+    assert np.abs(np.linalg.norm(raw, axis=1) - 1).max() < 0.03
+
+
+def _apose_rig():
+    """A rig in another convention and rest pose (Unreal names, A-pose, facing
+    +Y in armature space, arbitrary rolls): ``(joints, bones)`` where bones are
+    ``(name, parent, head, tail, roll)`` in metres."""
+    s = np.sqrt(0.5)
+    bones = [("root", None, (0, 0, 0), (0, 0.2, 0), 0.0),
+             ("pelvis", "root", (0, 0, 0.88), (0, 0, 0.98), 1.1),
+             ("spine_01", "pelvis", (0, 0, 0.98), (0, 0.01, 1.09), 0.3),
+             ("spine_02", "spine_01", (0, 0.01, 1.09), (0, 0.01, 1.20), -0.7),
+             ("spine_03", "spine_02", (0, 0.01, 1.20), (0, 0, 1.32), 2.0),
+             ("neck_01", "spine_03", (0, 0, 1.32), (0, 0.02, 1.47), 0.0),
+             ("head", "neck_01", (0, 0.02, 1.47), (0, 0.02, 1.64), 0.5)]
+    for sg, side in ((-1, "l"), (1, "r")):
+        x = sg  # facing +Y: the left side is -X
+        sh = np.array([0.17 * x, 0.0, 1.30])
+        d = np.array([s * x, 0.0, -s])
+        el, wr, hd = sh + 0.30 * d, sh + 0.57 * d, sh + 0.65 * d
+        bones += [("clavicle_" + side, "spine_03", (0.03 * x, 0, 1.29), tuple(sh), 0.4 * x),
+                  ("upperarm_" + side, "clavicle_" + side, tuple(sh), tuple(el), 1.3 * x),
+                  ("upperarm_twist_01_" + side, "upperarm_" + side, tuple((sh + el) / 2), tuple(el), 0.0),
+                  ("lowerarm_" + side, "upperarm_" + side, tuple(el), tuple(wr), -0.9),
+                  ("hand_" + side, "lowerarm_" + side, tuple(wr), tuple(hd), 2.5),
+                  ("index_01_" + side, "hand_" + side, tuple(hd), tuple(hd + 0.04 * d), 0.0),
+                  ("thigh_" + side, "pelvis", (0.09 * x, 0, 0.86), (0.09 * x, 0, 0.465), 0.8 * x),
+                  ("calf_" + side, "thigh_" + side, (0.09 * x, 0, 0.465), (0.09 * x, 0, 0.08), -0.4),
+                  ("foot_" + side, "calf_" + side, (0.09 * x, 0, 0.08), (0.09 * x, 0.12, 0.03), 3.0),
+                  ("ball_" + side, "foot_" + side, (0.09 * x, 0.12, 0.03), (0.09 * x, 0.18, 0.03), 0.0)]
+    return bones
+
+
+def _apose_target():
+    """:func:`_apose_rig` as a :class:`TargetRig` (rest matrices with the given
+    rolls; the object turned 90 degrees about Z and moved)."""
+    bones = _apose_rig()
+    names = [b[0] for b in bones]
+    parents = [names.index(b[1]) if b[1] else -1 for b in bones]
+    rest = []
+    for _, _, h, t, roll in bones:
+        y = np.subtract(t, h) / np.linalg.norm(np.subtract(t, h))
+        ref = np.array([0.0, 0.0, 1.0]) if abs(y[2]) < 0.9 else np.array([0.0, -1.0, 0.0])
+        x = np.cross(y, ref)
+        x /= np.linalg.norm(x)
+        z = np.cross(x, y)
+        c, s_ = np.cos(roll), np.sin(roll)
+        x, z = c * x + s_ * z, -s_ * x + c * z
+        m = np.eye(4)
+        m[:3, :3] = np.stack([x, y, z], axis=1)
+        m[:3, 3] = h
+        rest.append(m)
+    lengths = [np.linalg.norm(np.subtract(t, h)) for _, _, h, t, _ in bones]
+    world = np.eye(4)
+    world[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # turned 90 degrees
+    world[:3, 3] = (1.5, -0.5, 0.0)
+    return rt.TargetRig(names, parents, np.array(rest), lengths, matrix_world=world)
+
+
+def _rest_source():
+    from dancing_points_addon.asf_amc import load_amc
+    from dancing_points_addon.skeleton import PARENTS
+
+    bv = load_amc(SALSA / "60_10.amc").bone_vectors
+    ends = np.zeros((31, 3))
+    for n in range(1, 31):
+        ends[n] = ends[PARENTS[n]] + bv[n]
+    return bv, ends - [0, ends[:, 1].min() - 0.02, 0]  # toes 2 cm above the floor
+
+
+def test_alignment_of_an_apose_rig_numpy():
+    """Source in its rest pose -> every mapped target segment points exactly like
+    its source segment (T-pose arms on an A-pose rig, any roll)."""
+    if not SALSA.exists():
+        pytest.skip("shared data not found")
+    rig = _apose_target()
+    names = rig.names
+    mapping, conv = rt.auto_mapping(names)
+    assert conv == "unreal"
+    bv, ends = _rest_source()
+    ret = rt.Retargeter(bv, rig, mapping, foot_lock=False, match_hands=False, match_head=False)
+    pos = ends[None]
+    rot = np.broadcast_to(np.eye(3), (1, 31, 3, 3)).copy()
+    pose = ret.solve(pos, rot)
+    heads = pose.W[0, :, :3, 3]
+    pts, _ = rt.source_world(pos, rot)
+    worst = 0.0
+    for name, chain in ret.mapping.items():
+        b = rig.index[name]
+        if chain == "root":
+            continue
+        sg = ret.seg[b]
+        dt = ret._end_world(pose.W, b)[0] - heads[b]
+        ds = rt._interp_poly(pts[:, sg["chain"]], sg["s"], sg["f1"])[0] - rt._interp_poly(
+            pts[:, sg["chain"]], sg["s"], sg["f0"])[0]
+        ang = np.degrees(np.arccos(np.clip(dt @ ds / np.linalg.norm(dt) / np.linalg.norm(ds), -1, 1)))
+        worst = max(worst, ang)
+    print(f"\nA-pose rig vs source rest pose: worst segment direction error {worst:.2e} deg")
+    assert worst < 1e-3
+    # The turned rig faces the source's way (-Y) after alignment: its left hip is at +X.
+    lm = ret.landmarks(pose.W)
+    hips_l = pose.W[0, rig.index["thigh_l"], :3, 3]
+    hips_r = pose.W[0, rig.index["thigh_r"], :3, 3]
+    assert hips_l[0] > hips_r[0]
+    assert lm["head"][0, 2] > lm["hips"][0, 2] > lm["lankle"][0, 2]
+
+
+
+def test_planted_source_feet_stay_planted_on_the_target_numpy():
+    """A source whose pelvis bobs and sways while both feet stay planted (leg IK
+    on the source): on a rig of other proportions the feet slide without foot
+    locking and stay put with it."""
+    from dancing_points_addon.ik import two_bone_ik
+    from dancing_points_addon.skeleton import JOINT_INDEX as J
+
+    if not SALSA.exists():
+        pytest.skip("shared data not found")
+    bv, ends = _rest_source()
+    T = 60
+    t = np.arange(T) / 30.0
+    off = np.stack([0.05 * np.sin(2 * np.pi * t), -0.06 - 0.04 * np.sin(4 * np.pi * t),
+                    0.03 * np.cos(2 * np.pi * t)], 1)
+    pos = np.repeat(ends[None], T, 0)
+    rot = np.repeat(np.eye(3)[None, None], T, 0).repeat(31, 1)
+    legs = {s: [J[s + n] for n in ("hipjoint", "femur", "tibia", "foot", "toes")] for s in "lr"}
+    pos += off[:, None]
+    for s, (hj, fe, ti, fo, to) in legs.items():
+        knee, ankle, R1, R2 = two_bone_ik(pos[:, hj], pos[:, fe], pos[:, ti], ends[ti][None].repeat(T, 0))
+        pos[:, fe], pos[:, ti] = knee, ankle
+        pos[:, fo], pos[:, to] = ends[fo], ends[to]
+        rot[:, fe], rot[:, ti] = R1, R2
+    assert np.abs(pos[:, J["ltibia"]] - ends[J["ltibia"]]).max() < 1e-6  # the source is planted
+    rig = _apose_target()
+    mapping, _ = rt.auto_mapping(rig.names)
+    slides = {}
+    for lock in (False, True):
+        ret = rt.Retargeter(bv, rig, mapping, foot_lock=lock)
+        pose = ret.solve(pos, rot)
+        lm = ret.landmarks(pose.W)
+        slides[lock] = max(np.linalg.norm(lm[k] - lm[k][0], axis=-1).max() for k in rt.FOOT_POINTS)
+    print(f"\nplanted source feet: target foot points move up to {slides[False] / CM:.2f} cm without foot "
+          f"locking, {slides[True] / CM:.4f} cm with it")
+    assert slides[True] < 1e-3 < slides[False]
+
+
+# --------------------------------------------------------------------------- in Blender
+
+try:
+    import bpy
+except ImportError:  # the bpy-free tests above still run
+    bpy = None
+
+if bpy is not None:
+    import blender_scene_util as bsu
+    from ext_util import import_from_extension
+
+
+def _model_dir():
+    for cand in (os.environ.get("DP_MODEL_DIR", ""), str(ROOT / "models"), "/tmp/tiny_models"):
+        if cand and all(os.path.isfile(os.path.join(cand, f)) for f in MODEL_FILES):
+            return cand
+    return None
+
+
+MODELS = _model_dir()
+
+
+def _build_apose_rig(name="UE Dancer", size=1.0, modes=('QUATERNION', 'XYZ', 'ZXY')):
+    """The :func:`_apose_rig` (scaled by ``size``) as a Blender armature with a
+    skinned box body, bones in the rotation ``modes`` in turn."""
+    bones = [(n, p, tuple(size * np.array(h)), tuple(size * np.array(t)), r) for n, p, h, t, r in _apose_rig()]
+    arm = bpy.data.armatures.new(name)
+    obj = bpy.data.objects.new(name, arm)
+    bpy.context.scene.collection.objects.link(obj)
+    bpy.context.view_layer.objects.active = obj
+    bpy.ops.object.mode_set(mode='EDIT')
+    for bname, parent, h, t, roll in bones:
+        eb = arm.edit_bones.new(bname)
+        eb.head, eb.tail, eb.roll = h, t, roll
+        if parent:
+            eb.parent = arm.edit_bones[parent]
+            eb.use_connect = np.allclose(arm.edit_bones[parent].tail, h) and "twist" not in bname
+    bpy.ops.object.mode_set(mode='OBJECT')
+    for i, pb in enumerate(obj.pose.bones):
+        pb.rotation_mode = modes[i % len(modes)]
+    obj.location = (1.5, -0.5, 0.0)
+    obj.rotation_euler = (0.0, 0.0, np.pi / 2)
+    # Body: a box around every bone, rigidly weighted.
+    verts, faces, groups = [], [], []
+    for bname, _, h, t, _ in bones:
+        if bname in ("root",):
+            continue
+        h, t = np.array(h), np.array(t)
+        r = 0.04
+        base = len(verts)
+        for a in (h, t):
+            for dx in (-r, r):
+                for dy in (-r, r):
+                    verts.append(tuple(a + (dx, dy, 0.0)))
+        faces += [(base + i for i in f) for f in ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6),
+                                                   (0, 2, 6, 4), (1, 5, 7, 3))]
+        groups.append((bname, list(range(base, base + 8))))
+    me = bpy.data.meshes.new(name + " Body")
+    me.from_pydata(verts, [], [tuple(f) for f in faces])
+    body = bpy.data.objects.new(name + " Body", me)
+    bpy.context.scene.collection.objects.link(body)
+    body.parent = obj
+    for bname, idx in groups:
+        body.vertex_groups.new(name=bname).add(idx, 1.0, 'REPLACE')
+    mod = body.modifiers.new("Armature", 'ARMATURE')
+    mod.object = obj
+    return obj
+
+
+def _import_avatar(path, tmpdir):
+    plain = gltf_meshopt.decompress_glb(path, tmpdir / path.name)
+    before = set(bpy.data.objects)
+    assert bpy.ops.import_scene.gltf(filepath=str(plain)) == {'FINISHED'}
+    new = [o for o in bpy.data.objects if o not in before]
+    arm = next(o for o in new if o.type == 'ARMATURE')
+    meshes = [o for o in new if o.type == 'MESH' and any(m.type == 'ARMATURE' and m.object == arm
+                                                         for m in o.modifiers)]
+    return arm, max(meshes, key=lambda o: len(o.data.vertices))
+
+
+def _reference(arm):
+    """Rest data and the reference pose (world) of a rig before retargeting."""
+    names = [b.name for b in arm.data.bones]
+    mw = np.array(arm.matrix_world)
+    return {"rest": {n: np.array(arm.data.bones[n].matrix_local) for n in names},
+            "world": {n: mw @ np.array(arm.pose.bones[n].matrix) for n in names}}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    if bpy is None:
+        pytest.skip("bpy not installed")
+    if MODELS is None:
+        pytest.skip("no synthesis models (set DP_MODEL_DIR or train the tiny ones into /tmp/tiny_models)")
+    if not SALSA.exists() or not (ASSETS / AVATARS["leader"]).exists():
+        pytest.skip("shared data or avatars not found")
+    from dancing_points_addon.asf_amc import load_amc
+    from dancing_points_addon.skeleton import Motion
+    from dancing_points_addon.take import take_from_motion, write_take
+
+    d = tmp_path_factory.mktemp("dp_retarget")
+    m = load_amc(SALSA / "60_10.amc")
+    i0, i1 = int(START * m.fps), int((START + SECONDS) * m.fps)
+    m = Motion(m.positions[i0:i1], m.rotations[i0:i1], m.fps, m.bone_vectors, m.source, dict(m.meta))
+    csv = d / "salsa_5s.csv"
+    write_take(csv, take_from_motion(m))
+    bsu.fresh_scene()
+    assert bpy.ops.dancing_points.import_take(filepath=str(csv)) == {'FINISHED'}
+    assert bpy.ops.dancing_points.synthesize(model_dir=MODELS) == {'FINISHED'}
+    duet = next(c for c in bpy.data.collections if c.dancing_points.kind == 'DUET')
+    dp = import_from_extension("operators.retarget").duet_armatures(duet)
+    avatars = {role: _import_avatar(ASSETS / f, d) for role, f in AVATARS.items()}
+    refs = {role: _reference(a) for role, (a, _) in avatars.items()}
+    lead = avatars["leader"][0]
+    t0 = time.perf_counter()
+    assert bpy.ops.dancing_points.retarget_duet(duet=duet.name, leader_target=lead.name,
+                                                follower_target=avatars["follower"][0].name) == {'FINISHED'}
+    t_avatars = time.perf_counter() - t0
+    ue = {"leader": _build_apose_rig("UE Leader", 1.04), "follower": _build_apose_rig("UE Follower", 0.95,
+                                                                                   ('ZXY', 'QUATERNION', 'YZX'))}
+    ue["follower"].location = (-1.0, 2.0, 0.0)
+    ue_ref = {r: _reference(o) for r, o in ue.items()}
+    # The built follower already has an action of its own: it must survive untouched.
+    compat = bsu.compat()
+    old, slot = compat.new_action_for(ue["follower"], "Users Own Action")
+    compat.write_keys(compat.ensure_fcurves(old, slot, 'pose.bones["pelvis"].location', 0, "pelvis"),
+                      [1, 2], [0.0, 0.0])
+    t0 = time.perf_counter()
+    assert bpy.ops.dancing_points.retarget_duet(duet=duet.name, leader_target=ue["leader"].name,
+                                                follower_target=ue["follower"].name) == {'FINISHED'}
+    t_ue = time.perf_counter() - t0
+    print(f"\nmodels {MODELS}: retarget of both avatars {t_avatars:.2f} s, of both built rigs {t_ue:.2f} s")
+    frames = bsu.fcurve_keys(dp["leader"], 'pose.bones["root"].location', 0)[0].astype(int)
+    # The duet's centre (hip joints' midpoint, both source dancers, all frames): the
+    # point about which positions are normalised by height.
+    W = _evaluate([dp["leader"], dp["follower"]], frames)
+    centre = np.mean([_points(W[a.name], [pb.name for pb in a.pose.bones], SRC_POINTS, tails=True,
+                              lengths={b.name: b.length for b in a.data.bones})["hips"][:, :2].mean(0)
+                      for a in dp.values()], axis=0)
+    return {"duet": duet, "dp": dp, "avatars": avatars, "refs": refs, "ue": ue, "ue_ref": ue_ref, "frames": frames,
+            "dir": d, "centre": centre}
+
+
+# Landmarks: source DP bone whose tail it is / target bone whose head it is, per convention.
+SRC_POINTS = {"lhip": "lhipjoint", "rhip": "rhipjoint", "head": "upperneck", "lwrist": "lwrist",
+              "rwrist": "rwrist", "lankle": "ltibia", "rankle": "rtibia", "lball": "lfoot", "rball": "rfoot"}
+TGT_POINTS = {
+    "mixamo": {"lhip": "LeftUpLeg", "rhip": "RightUpLeg", "head": "Head", "lwrist": "LeftHand",
+               "rwrist": "RightHand", "lankle": "LeftFoot", "rankle": "RightFoot", "lball": "LeftToeBase",
+               "rball": "RightToeBase"},
+    "unreal": {"lhip": "thigh_l", "rhip": "thigh_r", "head": "head", "lwrist": "hand_l", "rwrist": "hand_r",
+               "lankle": "foot_l", "rankle": "foot_r", "lball": "ball_l", "rball": "ball_r"},
+}
+
+
+def _evaluate(objs, frames):
+    """Blender-evaluated world matrices ``{obj name: (T, B, 4, 4)}`` of armatures'
+    pose bones at ``frames``, and bone names."""
+    scene = bpy.context.scene
+    out = {o.name: np.empty((len(frames), len(o.pose.bones), 4, 4)) for o in objs}
+    for i, f in enumerate(frames):
+        scene.frame_set(int(f))
+        for o in objs:
+            mw = np.array(o.matrix_world)
+            for j, pb in enumerate(o.pose.bones):
+                out[o.name][i, j] = mw @ np.array(pb.matrix)
+    return out
+
+
+def _points(W, names, table, tails=False, lengths=None):
+    idx = {n: i for i, n in enumerate(names)}
+    out = {}
+    for key, bone in table.items():
+        m = W[:, idx[bone]]
+        if tails:
+            y = np.array([0.0, lengths[bone], 0.0, 1.0])
+            out[key] = np.einsum("tij,j->ti", m, y)[:, :3]
+        else:
+            out[key] = m[:, :3, 3]
+    out["hips"] = 0.5 * (out.pop("lhip") + out.pop("rhip"))
+    return out
+
+
+def _source_height(arm, ankles):
+    """Standing height of the skull base of a DP armature: ankle floor level + leg + rest torso."""
+    b = arm.data.bones
+    leg = np.mean([b[s + "femur"].length + b[s + "tibia"].length for s in "lr"])
+    hip = 0.5 * (np.array(b["lhipjoint"].tail_local) + np.array(b["rhipjoint"].tail_local))
+    skull = np.array(b["upperneck"].tail_local)
+    floor = float(np.mean(np.percentile(ankles[..., 2], 5, axis=0)))
+    return floor + leg + (skull[2] - hip[2])
+
+
+def _check_rig(sc, role, target, ref, convention, label):
+    frames = sc["frames"]
+    src = sc["dp"][role]
+    W = _evaluate([src, target], frames)
+    s_names = [pb.name for pb in src.pose.bones]
+    t_names = [pb.name for pb in target.pose.bones]
+    sp_blender = _points(W[src.name], s_names, SRC_POINTS, tails=True,
+                         lengths={n: src.data.bones[n].length for n in s_names})
+    tp = _points(W[target.name], t_names, TGT_POINTS[convention])
+    # The source as the retarget reads it (its action's keys, SPEC positions): the
+    # contacts are thresholds, so both sides must see the very same numbers. It is
+    # Blender's evaluation of the source to well under a millimetre.
+    rmod = import_from_extension("operators.retarget")
+    _, pos, rot, _, mat = rmod.source_motion(src)
+    sp = rt.source_landmarks(rt.source_world(pos, rot, mat)[0])
+    sp = {k: sp[k] for k in sp_blender}
+    worst = max(np.abs(sp[k] - sp_blender[k]).max() for k in sp)
+    assert worst < 1e-3, worst
+    ankles = np.stack([sp["lankle"], sp["rankle"]], 1)
+    Hs = _source_height(src, ankles)
+    tgt = TGT_POINTS[convention]
+    Ht = float(ref["world"][tgt["head"]][2, 3])  # skull base, standing reference, floor z=0
+    print(f"\n[{label}] {len(frames)} frames; height (skull base) source {Hs:.3f} m, target {Ht:.3f} m")
+    # 1. Landmarks follow the source after normalising by height: horizontally about the
+    # duet's centre, vertically above the floor, times Hs / Ht (errors at the source's size).
+    # "standing-relative": the hips' and ankles' heights counted from their own standing
+    # height, which differs between rigs by where they put these joints and by their
+    # leg-to-height proportion (the pelvis height follows the leg length by design).
+    c = np.append(sc["centre"], 0.0)
+    a_floor = float(np.mean(np.percentile(ankles[..., 2], 5, axis=0)))
+    b = src.data.bones
+    stand_s = {"hips": a_floor + np.mean([b[x + "femur"].length + b[x + "tibia"].length for x in "lr"]),
+               "lankle": a_floor, "rankle": a_floor}
+    stand_t = {"hips": 0.5 * (ref["world"][tgt["lhip"]][2, 3] + ref["world"][tgt["rhip"]][2, 3]),
+               "lankle": ref["world"][tgt["lankle"]][2, 3], "rankle": ref["world"][tgt["rankle"]][2, 3]}
+    groups = {"hips": ["hips"], "hands": ["lwrist", "rwrist"], "feet": ["lankle", "rankle"], "head": ["head"]}
+    means, raw = {}, {}
+    for g, keys in groups.items():
+        e_abs, e_rel = [], []
+        for k in keys:
+            d = (tp[k] - c) * (Hs / Ht) - (sp[k] - c)
+            e_abs.append(np.linalg.norm(d, axis=-1))
+            d[:, 2] -= stand_t.get(k, 0.0) * (Hs / Ht) - stand_s.get(k, 0.0)
+            e_rel.append(np.linalg.norm(d, axis=-1))
+        e_abs, e_rel = np.concatenate(e_abs), np.concatenate(e_rel)
+        raw[g], means[g] = e_abs.mean(), e_rel.mean()
+        print(f"  {g:5s}: normalised position error mean {e_abs.mean() / CM:.2f} cm (max {e_abs.max() / CM:.2f}); "
+              f"standing-relative mean {e_rel.mean() / CM:.2f} cm (max {e_rel.max() / CM:.2f})")
+    # 2. No foot point slides while in contact: the source's foot points are in contact
+    # where they are planted (SPEC §6 contact — low and slow — and within 2 cm of where the
+    # contact began; a foot pivoting on its ball or gliding is low and slow but not planted).
+    # Also reported: the same over the SPEC §6 contacts alone.
+    feet = ("lankle", "lball", "rankle", "rball")
+    fp = np.stack([sp[k] for k in feet], 1)
+    spec = rt.detect_contacts(fp, fps=30.0)
+    results = {}
+    for label_c, contact in (("planted", rt.planted(spec, fp)), ("SPEC-only", spec)):
+        slide_t, slide_s = [0.0], [0.0]
+        for j, k in enumerate(feet):
+            c = contact[:, j]
+            t = 0
+            while t < len(c):
+                if not c[t]:
+                    t += 1
+                    continue
+                s0 = t
+                while t < len(c) and c[t]:
+                    t += 1
+                slide_t.append(np.linalg.norm(tp[k][s0:t, :2] - tp[k][s0, :2], axis=-1).max())
+                slide_s.append(np.linalg.norm(sp[k][s0:t, :2] - sp[k][s0, :2], axis=-1).max())
+        results[label_c] = max(slide_t)
+        print(f"  {label_c} contacts: {contact.mean() * 100:.0f}% of foot-point frames, {len(slide_t) - 1} runs; "
+              f"largest slide target {max(slide_t) / CM:.2f} cm (source {max(slide_s) / CM:.2f} cm)")
+    slide_t = [results["planted"]]
+    # 3. No bone flips.
+    steps = rt.rotation_steps_deg(W[target.name])
+    print(f"  largest frame-to-frame bone rotation {steps.max():.1f} deg")
+    # 4. Rest pose untouched.
+    for n, m in ref["rest"].items():
+        np.testing.assert_allclose(np.array(target.data.bones[n].matrix_local), m, atol=1e-6)
+    return means, max(slide_t), steps.max()
+
+
+@pytest.mark.parametrize("role", ["leader", "follower"])
+def test_avatars_follow_the_duet(scene, role):
+    arm, body = scene["avatars"][role]
+    means, slide, step = _check_rig(scene, role, arm, scene["refs"][role], "mixamo", f"avatar {role}")
+    assert max(means.values()) < 3 * CM, means
+    assert slide < 1 * CM
+    assert step < 90.0
+    # The avatar's own mesh deforms (Blender's Armature modifier), its mesh data is untouched.
+    f = scene["frames"]
+    a = bsu.evaluated_vertices(body, f[len(f) // 4])
+    b = bsu.evaluated_vertices(body, f[3 * len(f) // 4])
+    moved = np.linalg.norm(a - b, axis=-1)
+    print(f"  mesh '{body.name}': {len(a)} vertices, moved up to {moved.max() / CM:.1f} cm between two frames")
+    assert moved.max() > 5 * CM
+
+
+def test_new_actions_and_the_rigs_own_action_kept(scene):
+    lead, _ = scene["avatars"]["leader"]
+    action = lead.animation_data.action
+    assert action.name.startswith("DP ") and action.get("dp_retarget_source") == scene["dp"]["leader"].name
+    ue = scene["ue"]["follower"]
+    assert ue.animation_data.action.name.startswith("DP ")
+    old = bpy.data.actions["Users Own Action"]
+    assert old.use_fake_user  # kept although the rig now plays the new action
+    compat = bsu.compat()
+    fc = list(compat.fcurves_of(old, old.slots[0] if compat.SLOTTED else None))
+    assert len(fc) == 1 and list(compat.read_keys(fc[0])[0]) == [1.0, 2.0]
+    # One key per frame on every bone.
+    frames = scene["frames"]
+    f, _ = bsu.fcurve_keys(lead, 'pose.bones["LeftUpLeg"].rotation_quaternion', 0)
+    np.testing.assert_array_equal(f, frames)
+    # The mapping is stored on the rig, editable and exportable.
+    m = {i.target: i.source for i in lead.dp_retarget_map if i.source}
+    assert m["LeftForeArm"] == "lradius+lwrist" and len(lead.dp_retarget_map) == len(lead.data.bones)
+    path = scene["dir"] / "avatar_map.json"
+    assert bpy.ops.dancing_points.retarget_map_save(target=lead.name, filepath=str(path)) == {'FINISHED'}
+    assert rt.load_preset(path)["bones"] == m
+
+
+def test_hands_that_hold_stay_together(scene):
+    """Where the source dancers' wrists are < 15 cm apart, the avatars' are too
+    (at the source's gap, up to arm reach)."""
+    frames = scene["frames"]
+    dp = scene["dp"]
+    (la, _), (fa, _) = scene["avatars"]["leader"], scene["avatars"]["follower"]
+    W = _evaluate([dp["leader"], dp["follower"], la, fa], frames)
+
+    def wr(obj, names, tails):
+        idx = [o.name for o in obj.pose.bones]
+        out = []
+        for n in names:
+            m = W[obj.name][:, idx.index(n)]
+            p = np.einsum("tij,j->ti", m, [0, obj.data.bones[n].length, 0, 1])[:, :3] if tails else m[:, :3, 3]
+            out.append(p)
+        return np.stack(out, 1)
+
+    sl, sf = wr(dp["leader"], ["lwrist", "rwrist"], True), wr(dp["follower"], ["lwrist", "rwrist"], True)
+    tl, tf = wr(la, ["LeftHand", "RightHand"], False), wr(fa, ["LeftHand", "RightHand"], False)
+    ds = np.linalg.norm(sl[:, :, None] - sf[:, None], axis=-1).reshape(len(frames), 4)
+    dt = np.linalg.norm(tl[:, :, None] - tf[:, None], axis=-1).reshape(len(frames), 4)
+    held = ds < 0.15
+    if not held.any():
+        print("\nno hand holds in this clip")
+        return
+    gap = np.abs(dt[held] - ds[held])
+    print(f"\nhand holds: {held.sum()} pair-frames; |target gap - source gap| mean {gap.mean() / CM:.2f} cm, "
+          f"max {gap.max() / CM:.2f} cm")
+    assert np.median(gap) < 3 * CM
+
+
+@pytest.mark.parametrize("role", ["leader", "follower"])
+def test_apose_rigs_of_another_convention(scene, role):
+    ue = scene["ue"][role]
+    means, slide, step = _check_rig(scene, role, ue, scene["ue_ref"][role], "unreal",
+                                    f"built Unreal A-pose rig, {role}")
+    assert max(means.values()) < 3 * CM, means
+    assert slide < 1 * CM
+    assert step < 90.0
+    body = next(o for o in bpy.data.objects if o.parent == ue and o.type == 'MESH')
+    f = scene["frames"]
+    moved = np.linalg.norm(bsu.evaluated_vertices(body, f[10]) - bsu.evaluated_vertices(body, f[-10]), axis=-1)
+    assert moved.max() > 5 * CM
+    # Euler bones were keyed in their own rotation mode.
+    pb = next(p for p in ue.pose.bones if p.rotation_mode not in ('QUATERNION', 'AXIS_ANGLE'))
+    assert bsu.fcurve_keys(ue, 'pose.bones["{:s}"].rotation_euler'.format(pb.name), 0)[0].size == len(f)
+
+
+def test_single_dancer_closes_hands_on_the_partners_rig(scene):
+    """``retarget(source, target)`` for one dancer: where the dancers hold hands,
+    its wrists meet those of the rig the partner was retargeted onto (fixed)."""
+    dp, ue = scene["dp"], scene["ue"]
+    assert bpy.ops.dancing_points.retarget(source=dp["follower"].name, target=ue["follower"].name) == {'FINISHED'}
+    frames = scene["frames"]
+    W = _evaluate([dp["leader"], dp["follower"], ue["leader"], ue["follower"]], frames)
+
+    def wrists(obj, tails, names):
+        idx = [p.name for p in obj.pose.bones]
+        m = [W[obj.name][:, idx.index(n)] for n in names]
+        if tails:
+            return np.stack([np.einsum("tij,j->ti", x, [0, obj.data.bones[n].length, 0, 1])[:, :3]
+                             for x, n in zip(m, names)], 1)
+        return np.stack([x[:, :3, 3] for x in m], 1)
+
+    sl, sf = (wrists(dp[r], True, ["lwrist", "rwrist"]) for r in ("leader", "follower"))
+    tl, tf = (wrists(ue[r], False, ["hand_l", "hand_r"]) for r in ("leader", "follower"))
+    ds = np.linalg.norm(sl[:, :, None] - sf[:, None], axis=-1).reshape(len(frames), 4)
+    dt = np.linalg.norm(tl[:, :, None] - tf[:, None], axis=-1).reshape(len(frames), 4)
+    held = ds < 0.15
+    if held.any():
+        gap = np.abs(dt[held] - ds[held])
+        print(f"\nsingle-dancer retarget: {held.sum()} held pair-frames, |target gap - source gap| "
+              f"median {np.median(gap) / CM:.2f} cm, max {gap.max() / CM:.2f} cm")
+        assert np.median(gap) < 3 * CM
+
+
+def test_bad_input_reports_one_line(scene):
+    dp = scene["dp"]
+    with pytest.raises(RuntimeError, match="no object named"):
+        bpy.ops.dancing_points.retarget(source=dp["leader"].name, target="nope")
+    cam = bpy.context.scene.camera
+    with pytest.raises(RuntimeError, match="must be an armature"):
+        bpy.ops.dancing_points.retarget(source=dp["leader"].name, target=cam.name)
+    ue = scene["ue"]["leader"]
+    with pytest.raises(RuntimeError, match="not a Dancing Points armature"):
+        bpy.ops.dancing_points.retarget(source=ue.name, target=scene["avatars"]["leader"][0].name)
+
+
+def test_panel_draws_and_rig_files_load(scene, tmp_path):
+    """The Retarget sub-panel draws (a recording stand-in layout); a rig saved in a
+    .blend and a meshopt .glb load through ``load_rig_file`` (the batch command's way in)."""
+
+    class Rec:
+        def __init__(self):
+            self.calls = []
+
+        def __getattr__(self, name):
+            def f(*a, **k):
+                self.calls.append((name, a, k))
+                return self
+            return f
+
+    cls = bpy.types.Panel.bl_rna_get_subclass_py("VIEW3D_PT_dancing_points_retarget")
+    assert cls is not None and cls.bl_parent_id == "VIEW3D_PT_dancing_points"
+    bpy.context.view_layer.objects.active = scene["ue"]["leader"]
+    fake = type("Fake", (), {"layout": Rec()})
+    cls.draw(fake, bpy.context)
+    assert any(c[0] == "template_list" for c in fake.layout.calls)
+    rmod = import_from_extension("operators.retarget")
+    path = tmp_path / "rig.blend"
+    bpy.data.libraries.write(str(path), {scene["ue"]["leader"]})
+    arm = rmod.load_rig_file(str(path))
+    assert arm.type == 'ARMATURE' and len(arm.data.bones) == len(scene["ue"]["leader"].data.bones)
+    arm = rmod.load_rig_file(str(ASSETS / AVATARS["follower"]))
+    assert len(arm.data.bones) == 84
+    with pytest.raises(rmod.RetargetFailure, match="unsupported rig file type"):
+        rmod.load_rig_file(str(ASSETS / "VALID_AVATARS_LICENSE.txt"))
