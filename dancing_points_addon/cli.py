@@ -186,6 +186,28 @@ def _parser_benchmark(sub) -> None:
     p.set_defaults(func=cmd_benchmark)
 
 
+# --------------------------------------------------------------------------- batch
+
+def cmd_batch(args) -> int:
+    from .batch import run
+
+    return run(args)
+
+
+def _parser_batch(sub) -> None:
+    from .batch import add_arguments
+
+    p = sub.add_parser("batch", help="many takes (files or folders) -> one duet each, in parallel",
+                       description="Convert every take (.csv, .bvh, .amc; folders are searched "
+                                   "recursively) to a baked duet, one output per take named after it, "
+                                   "on --jobs worker processes. A bad file is reported and skipped; the "
+                                   "exit status is 1 if any file failed, 130 when interrupted (Ctrl-C: "
+                                   "no partial outputs are left; --resume finishes the rest). "
+                                   "--format blend/fbx and --render need the bpy module.")
+    add_arguments(p)
+    p.set_defaults(func=cmd_batch)
+
+
 # --------------------------------------------------------------------------- build-extension
 
 def cmd_build_extension(args) -> int:
@@ -213,7 +235,7 @@ def _parser_build_extension(sub) -> None:
 
 # --------------------------------------------------------------------------- main
 
-PARSERS = [_parser_extract, _parser_synthesize, _parser_benchmark, _parser_build_extension]
+PARSERS = [_parser_extract, _parser_synthesize, _parser_benchmark, _parser_batch, _parser_build_extension]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -14,9 +14,9 @@ Thin translators between Blender and the bpy-free core (``dancing_points_addon``
 shims (legacy vs slotted actions, bulk keyframe I/O).
 """
 
-from . import props, take_io, synthesize, render, retarget
+from . import props, take_io, synthesize, render, retarget, batch_cli
 
-_modules = (props, take_io, synthesize, render, retarget)
+_modules = (props, take_io, synthesize, render, retarget, batch_cli)
 
 
 def register():

@@ -1,0 +1,216 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Headless batch conversion inside Blender.
+
+``blender --background --command dancing_points convert IN... -o OUT_DIR
+[--format blend|fbx|bvh|npz] [--jobs N] [--render] [--overwrite] [--resume] ...``
+
+The command is registered with ``bpy.utils.register_cli_command`` (Blender 4.2+)
+when the extension is enabled. The orchestration (file discovery, worker
+processes, progress, report, atomic outputs) is the bpy-free
+``dancing_points_addon.batch``; this module adds the part that needs Blender:
+:func:`convert_job`, the per-file conversion a worker runs for the blend and
+fbx formats and ``--render`` (import the take with
+``dancing_points.import_take``, synthesise, bake as ``dancing_points.synthesize``
+does, then save the .blend / export the FBX / render the preview video to the
+temporary paths the parent renames into place).
+
+Inside the Blender binary the workers are ``blender --background --command
+dancing_points worker`` processes (the extension enabled from the user's
+preferences, as in the parent); with the ``bpy`` module
+(``python -m dancing_points_addon batch``) they are Python processes that
+enable the checkout as an extension themselves
+(``batch.enable_extension_in_bpy``).
+"""
+
+import os
+import shutil
+import sys
+
+import bpy
+
+from ..dancing_points_addon import batch as core_batch
+from ..dancing_points_addon.errors import InputError
+
+COMMAND_ID = "dancing_points"
+PROG = "blender --background --command " + COMMAND_ID
+
+USAGE = """usage: {prog} convert IN... -o OUT_DIR [--format blend|fbx|bvh|npz] [--jobs N] [--render]
+                 [--overwrite] [--resume] [--report PATH] [--models DIR] ...
+
+Convert takes (.csv, .bvh, .amc, .fbx files, or folders searched recursively)
+into baked duets, one output per take, on --jobs worker processes.
+Run '{prog} convert --help' for every option.""".format(prog=PROG)
+
+_handle = None
+
+
+class BatchError(Exception):
+    """A failed take whose message is already the one line to report."""
+
+    one_line = True
+
+
+# --------------------------------------------------------------------------- the command
+
+def cli(argv):
+    """``blender --command dancing_points ...``: the ``convert`` subcommand (and the
+    internal ``worker``). Returns the exit status."""
+    from ..dancing_points_addon.cli import UsageError, _Parser
+
+    argv = list(argv)
+    if argv and argv[0] == "worker":  # internal: one worker process of a batch
+        return core_batch.worker_main(bpy_converter=convert_job)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(USAGE)
+        return 0 if argv else 2
+    if argv[0] != "convert":
+        print("error: {:s}: unknown subcommand {!r} (expected 'convert')".format(PROG, argv[0]), file=sys.stderr)
+        return 2
+    parser = _Parser(prog=PROG + " convert",
+                     description="Convert takes into baked duets in parallel (see the batch command of "
+                                 "python -m dancing_points_addon).")
+    core_batch.add_arguments(parser, default_format="blend")
+    try:
+        args = parser.parse_args(argv[1:])
+    except UsageError as exc:
+        print("error: {:s}".format(" ".join(str(exc).split())), file=sys.stderr)
+        return 2
+    except SystemExit as exc:  # --help
+        return int(exc.code or 0) if isinstance(exc.code, int) else 0
+    binary = bpy.app.binary_path
+    worker_cmd = [binary, "--background", "--command", COMMAND_ID, "worker"] if binary else None
+    try:
+        return core_batch.run(args, worker_cmd=worker_cmd, in_blender=True)
+    except InputError as exc:
+        print("error: {:s}".format(" ".join(str(exc).split())), file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - one line, never a traceback
+        if os.environ.get("DP_DEBUG", "") not in ("", "0"):
+            raise
+        print("error: internal error ({:s}: {:s})".format(type(exc).__name__, " ".join(str(exc).split())),
+              file=sys.stderr)
+        return 1
+
+
+# --------------------------------------------------------------------------- one take
+
+def _op_error(exc, path=None):
+    """The one-line message of an operator's error report (``RuntimeError: Error: ...``)."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    msg = lines[0] if lines else type(exc).__name__
+    for prefix in ("Error: ", "error: "):
+        if msg.startswith(prefix):
+            msg = msg[len(prefix):]
+    if path and path not in msg:
+        msg = "{:s}: {:s}".format(path, msg)
+    return BatchError(msg)
+
+
+def _fresh_scene():
+    """An empty scene, the extension still enabled (``read_homefile`` keeps the preferences)."""
+    bpy.ops.wm.read_homefile(use_empty=True)
+    if not hasattr(bpy.types, "DANCING_POINTS_OT_import_take"):
+        core_batch.enable_extension_in_bpy()
+    return bpy.context
+
+
+def _render_video(context, tmp, n_frames, progress, f0, f1):
+    """Render the preview video into the folder ``tmp.d``, then move it to ``tmp``."""
+    folder = tmp + ".d"
+    os.makedirs(folder, exist_ok=True)
+    done = [0]
+
+    def on_frame(scene, *args):
+        done[0] += 1
+        progress(f0 + (f1 - f0) * done[0] / max(n_frames, 1))
+
+    bpy.app.handlers.render_write.append(on_frame)
+    try:
+        try:
+            res = bpy.ops.dancing_points.render_preview(filepath=folder + os.sep, file_format='FFMPEG')
+        except RuntimeError as exc:
+            raise _op_error(exc) from None
+        if 'FINISHED' not in res:
+            raise BatchError("the preview render did not finish")
+        videos = sorted(f for f in os.listdir(folder) if not f.startswith("."))
+        if not videos:
+            raise BatchError("the preview render wrote no video")
+        os.replace(os.path.join(folder, videos[0]), tmp)
+    finally:
+        if on_frame in bpy.app.handlers.render_write:
+            bpy.app.handlers.render_write.remove(on_frame)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def convert_job(job, progress):
+    """One take of a batch in this Blender process: write the outputs of
+    ``job["temps"]`` (``{kind: temporary path}``; kinds ``blend``, ``fbx``, ``mp4``,
+    ``npz``, ``bvh_leader``, ``bvh_follower``). Returns ``{"frames": n}``; raises
+    on a bad take (the worker reports it and removes the temporary files)."""
+    from .props import active_take
+    from .synthesize import ModelError, make_synthesizer
+    from .take_io import take_from_collection
+    from . import bake
+
+    path = job["input"]
+    opts = job["options"]
+    temps = job["temps"]
+    context = _fresh_scene()
+    try:
+        res = bpy.ops.dancing_points.import_take(filepath=path, input_fps=float(opts.get("input_fps") or 0.0),
+                                                 height=float(opts.get("height") or 0.0))
+    except RuntimeError as exc:
+        raise _op_error(exc, path) from None
+    if 'FINISHED' not in res:
+        raise BatchError("{:s}: the take could not be imported".format(path))
+    progress(0.1)
+    coll = active_take(context)
+    if coll is None:
+        raise BatchError("{:s}: the import made no take".format(path))
+    take = take_from_collection(context, coll)
+    try:
+        synth, warnings = make_synthesizer(opts["models"], int(opts.get("threads") or 1), take.height,
+                                           not opts.get("no_foot_lock"), not opts.get("no_hand_ik"))
+    except ModelError as exc:
+        raise BatchError(str(exc)) from None
+    for w in warnings:
+        print("warning: {:s}: {:s}".format(path, w), file=sys.stderr)
+    duet = synth.synthesize(take, progress=lambda i, n: progress(0.1 + 0.6 * i / max(n, 1)))
+    core_batch.write_duet_files(temps, duet)
+    if any(k in temps for k in ("blend", "fbx", "mp4")):
+        bake.bake_duet(context, duet, coll.name, coll.dancing_points.frame_start)
+    progress(0.8)
+    if "blend" in temps:
+        res = bpy.ops.wm.save_as_mainfile(filepath=temps["blend"], copy=True, check_existing=False)
+        if 'FINISHED' not in res:
+            raise BatchError("{:s}: saving the .blend failed".format(path))
+    if "fbx" in temps:
+        try:
+            res = bpy.ops.export_scene.fbx(
+                filepath=temps["fbx"], check_existing=False, use_selection=False,
+                object_types={'ARMATURE', 'MESH'}, add_leaf_bones=False, bake_anim=True,
+                bake_anim_use_all_bones=True, bake_anim_use_nla_strips=False,
+                bake_anim_use_all_actions=False, bake_anim_force_startend_keying=True,
+                bake_anim_simplify_factor=0.0)
+        except RuntimeError as exc:
+            raise _op_error(exc, path) from None
+        if 'FINISHED' not in res:
+            raise BatchError("{:s}: the FBX export failed".format(path))
+    if "mp4" in temps:
+        _render_video(context, temps["mp4"], duet.n_frames, progress, 0.85, 1.0)
+    return {"frames": int(duet.n_frames)}
+
+
+# --------------------------------------------------------------------------- registration
+
+def register():
+    global _handle
+    if _handle is None and hasattr(bpy.utils, "register_cli_command"):  # Blender 4.2+
+        _handle = bpy.utils.register_cli_command(COMMAND_ID, cli)
+
+
+def unregister():
+    global _handle
+    if _handle is not None:
+        bpy.utils.unregister_cli_command(_handle)
+        _handle = None

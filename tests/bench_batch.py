@@ -1,0 +1,76 @@
+"""Benchmark: batch throughput with ``--jobs 2`` vs ``--jobs 1`` on the same 8 takes.
+
+    .venv/bin/python tests/bench_batch.py [--models DIR] [--jobs 2] [--formats npz,bvh,blend,fbx]
+
+The takes are 8 real CMU salsa takes (``60_01.amc`` .. ``60_08.amc``, whole,
+28-57 s each), converted to npz by ``python -m dancing_points_addon batch`` as a
+user runs it; each figure is the wall time of the whole command (worker start-up
+included). Prints ``jobs1 X s, jobs2 Y s, ratio R`` and fails (exit 1) when
+R < 1.7 (the goal on a 2-core machine). ``--formats`` also times each listed
+format with ``--jobs N`` on the same takes. Not collected by pytest: speed goals
+are checked by benchmarks that print their figures.
+"""
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SALSA = pathlib.Path(os.environ.get("DP_SHARED", ROOT.parent / "shared")) / "data" / "cmu_salsa"
+MODEL_FILES = ("mapping.onnx", "tracker_leader.onnx", "tracker_follower.onnx")
+GOAL = 1.7
+
+
+def model_dir(explicit):
+    for cand in (explicit, os.environ.get("DP_MODEL_DIR", ""), str(ROOT / "models"), "/tmp/tiny_models"):
+        if cand and all(os.path.isfile(os.path.join(cand, f)) for f in MODEL_FILES):
+            return cand
+    sys.exit("bench_batch: no synthesis models (give --models DIR)")
+
+
+def timed_batch(takes, out, fmt, jobs, models):
+    cmd = [sys.executable, "-m", "dancing_points_addon", "batch", *map(str, takes), "-o", str(out),
+           "--format", fmt, "--jobs", str(jobs), "--models", models, "--no-progress"]
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    dt = time.perf_counter() - t0
+    if res.returncode != 0:
+        sys.exit(f"bench_batch: batch failed ({res.returncode}):\n{res.stdout}{res.stderr}")
+    with open(os.path.join(out, "batch_report.json")) as f:
+        report = json.load(f)
+    frames = sum(r["frames"] for r in report["files"])
+    return dt, frames
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--models", default="")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--formats", default="", help="comma-separated formats to time as well")
+    args = ap.parse_args()
+    models = model_dir(args.models)
+    takes = [SALSA / f"60_{i:02d}.amc" for i in range(1, 9)]
+    print(f"8 takes ({', '.join(t.name for t in takes)}), models {models}, {os.cpu_count()} cores")
+    with tempfile.TemporaryDirectory(prefix="bench_batch_") as tmp:
+        tmp = pathlib.Path(tmp)
+        t1, frames = timed_batch(takes, tmp / "j1", "npz", 1, models)
+        t2, _ = timed_batch(takes, tmp / "j2", "npz", args.jobs, models)
+        ratio = t1 / t2
+        print(f"{frames} duet frames; jobs1 {t1:.2f} s, jobs{args.jobs} {t2:.2f} s, ratio {ratio:.2f} "
+              f"(goal >= {GOAL})")
+        for fmt in [f for f in args.formats.split(",") if f]:
+            dt, _ = timed_batch(takes, tmp / f"f_{fmt}", fmt, args.jobs, models)
+            print(f"--format {fmt} --jobs {args.jobs}: {dt:.2f} s ({dt / len(takes):.2f} s per take, "
+                  f"{frames / dt:.0f} duet frames/s)")
+    if ratio < GOAL:
+        print(f"FAIL: ratio {ratio:.2f} < {GOAL}")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
