@@ -130,3 +130,26 @@ def test_disable_and_reenable_cleanly(dp_extension):
     finally:
         assert ext_util.enable_extension() == dp_extension
     assert bpy.types.Panel.bl_rna_get_subclass_py(PANEL) is not None
+
+
+def test_build_extension_bundles_models_and_wheels(tmp_path):
+    """``python -m dancing_points_addon build-extension``: Blender's own build of the
+    tracked files, with the ONNX Runtime wheels of the platform (never numpy), the
+    shipped models, and no training code, tests or data; each zip validated."""
+    res = subprocess.run([sys.executable, "-m", "dancing_points_addon", "build-extension", "-o", str(tmp_path),
+                          "--platform", "linux-x64"], cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stdout + res.stderr
+    (archive,) = tmp_path.glob("dancing_points-*-linux_x64.zip")
+    with zipfile.ZipFile(archive) as zf:
+        names = zf.namelist()
+        manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+    for f in ("models/mapping.onnx", "models/tracker_leader.onnx", "models/tracker_follower.onnx",
+              "dancing_points_addon/samples/sample_take.csv"):
+        assert f in names
+    wheels = [n for n in names if n.startswith("wheels/")]
+    assert any(n.startswith("wheels/onnxruntime-") and "manylinux" in n for n in wheels), wheels
+    assert not any(n.lower().startswith("wheels/numpy") for n in wheels)
+    assert sorted("wheels/" + w.split("/")[-1] for w in manifest["wheels"]) == sorted(wheels)
+    leaked = [n for n in names if n.startswith(("training/", "tests/", ".ci/", "docs/", "cache/"))
+              or n.lower().endswith((".amc", ".asf", ".glb", ".fbx", ".npz"))]
+    assert not leaked, leaked

@@ -70,8 +70,10 @@ class PastInputSynth(Synthesizer):
         self._lh = self._lh[-self.HIST:]
         return self._past(self._lh[:-1] or self._lh, None)
 
+    follower_past = True  # False: the follower keeps the full model (not ablated)
+
     def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
-        if not self._fh:
+        if not self._fh or not self.follower_past:
             return super()._follower_keys(f_roots, f_tr, l_roots, l_tr)
         return self._past(self._fh, None)
 
@@ -244,20 +246,29 @@ def main(argv=None):
     nets = {k: OnnxNet(os.path.join(args.models, f)) for k, f in MODEL_FILES.items()}
     lock = not args.no_foot_lock
     systems = {"full": lambda: Synthesizer(nets=nets, foot_lock=lock)}
+    partial = {}
     if args.ablations:
         for tag in ("vanilla", "pastinput"):
             paths = {r: os.path.join(args.ablations, f"{tag}_{r}.onnx") for r in ("leader", "follower")}
-            if all(os.path.exists(p) for p in paths.values()):
+            paths = {r: p for r, p in paths.items() if os.path.exists(p)}
+            if paths:  # an ablation trained for one dancer only keeps the full model's other tracker
                 abl = dict(nets, **{r: OnnxNet(p) for r, p in paths.items()})
+                partial[tag] = sorted(set(("leader", "follower")) - set(paths))
                 cls = PastInputSynth if tag == "pastinput" else Synthesizer
+                if tag == "pastinput" and "follower" in partial[tag]:
+                    cls = type("PastInputLeaderSynth", (PastInputSynth,), {"follower_past": False})
                 systems[{"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}[tag]] = \
                     (lambda a=abl, c=cls: c(nets=a, foot_lock=lock))
     systems["(c) follower from leader trajectory"] = lambda: LeaderTrajSynth(nets=nets, foot_lock=lock)
+    names = {"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name, factory in systems.items():
             runs, info = run_system(factory, segments, tmp)
             results[name] = {**score(runs), **stability(runs), **info}
+            tag = next((t for t, n in names.items() if n == name), None)
+            if tag in partial and partial[tag]:
+                results[name]["not_ablated"] = partial[tag]  # these dancers use the full model
             print(name, json.dumps({k: round(v, 3) if isinstance(v, float) else v
                                     for k, v in results[name].items()}), flush=True)
         fixed = FixedPose(Synthesizer(nets=nets, foot_lock=False), mean_follower_offset(args.data))
@@ -285,8 +296,15 @@ def markdown_table(results):
     head = "| System | " + " | ".join(c[1] for c in COLUMNS) + " |\n"
     head += "|---" * (len(COLUMNS) + 1) + "|\n"
     rows = []
+    follower_cols = {"follower_fullbody_cm", "hand_cm", "heading_follower_deg", "heading_corr"}
+    leader_cols = {k for k, _ in COLUMNS} - follower_cols
     for name, r in results.items():
-        rows.append(f"| {name} | " + " | ".join(f"{r[k]:.2f}" for k, _ in COLUMNS) + " |")
+        skip = set()
+        if "follower" in r.get("not_ablated", []):
+            skip |= follower_cols
+        if "leader" in r.get("not_ablated", []):
+            skip |= leader_cols
+        rows.append(f"| {name} | " + " | ".join("–" if k in skip else f"{r[k]:.2f}" for k, _ in COLUMNS) + " |")
     gt = next(iter(results.values()))
     rows.append("| ground truth | 0 | 0 | 0 | 0 | 0 | 0 | "
                 f"{gt['heading_corr_gt']:.2f} | 1 | {gt['skating_gt_cm_s']:.2f} | {gt['jitter_gt']:.2f} |")

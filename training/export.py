@@ -78,31 +78,49 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
 def main(argv=None):
     import argparse
 
-    from .model import MappingNet, TrackingNet
+    from .model import MappingNet, TrackingNet, VanillaTracker
 
     ap = argparse.ArgumentParser(prog="python -m training.export", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoints", default="cache/checkpoints")
     ap.add_argument("--out", default="models")
+    ap.add_argument("--names", default="mapping,tracker_leader,tracker_follower",
+                    help="checkpoints to export (e.g. vanilla_leader,pastinput_follower for the ablations)")
+    ap.add_argument("--default-pose-from", default=None, metavar="DATA",
+                    help="recompute the trackers' start-up pose from this data's unmirrored train split")
     args = ap.parse_args(argv)
     report = {}
     rp = os.path.join(args.out, "training_report.json")
     if os.path.exists(rp):
         with open(rp) as f:
             report = json.load(f).get("models", {})
-    for name in ("mapping", "tracker_leader", "tracker_follower"):
+    clips = None
+    for name in args.names.split(","):
         ck = torch.load(os.path.join(args.checkpoints, f"{name}.pt"), weights_only=False)
         meta = dict(ck["meta"])
         if name == "mapping":
-            m, n_in = MappingNet(F.MAP_IN, F.MAP_OUT, meta["hidden"]), F.MAP_IN
+            m, n_in, kind = MappingNet(F.MAP_IN, F.MAP_OUT, meta["hidden"]), F.MAP_IN, "mapping"
         else:
-            m = TrackingNet(F.TRACK_IN, F.TRACK_OUT, meta["hidden"], pose_dim=F.POSE_DIM)
-            n_in = F.TRACK_IN
-            meta["role"] = name.split("_")[1]
+            role = meta.get("role") or name.rsplit("_", 1)[1]
+            cls = VanillaTracker if meta.get("ablation") == "a" else TrackingNet
+            m, n_in, kind = cls(F.TRACK_IN, F.TRACK_OUT, meta["hidden"], pose_dim=F.POSE_DIM), F.TRACK_IN, \
+                f"tracker_{role}"
+            meta["role"] = role
+            if args.default_pose_from:
+                from dancing_points_addon.dataset import load_clips
+
+                from .data import tracking_samples
+                from .train import default_pose
+
+                clips = clips or load_clips(args.default_pose_from, "train", mirror_aug=True)
+                x, _, where = tracking_samples(clips, role, past_input=meta.get("ablation") == "b")
+                meta["default_pose"] = default_pose(x, where, clips)
+                ck["meta"] = meta
+                torch.save(ck, os.path.join(args.checkpoints, f"{name}.pt"))
         m.load_state_dict(ck["state_dict"])
         if name in report:
             meta["train"] = report[name]
-        print("exported", export(m, name, os.path.join(args.out, f"{name}.onnx"), n_in, meta))
+        print("exported", export(m, kind, os.path.join(args.out, f"{name}.onnx"), n_in, meta))
     return 0
 
 
