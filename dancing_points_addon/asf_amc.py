@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, read_text
 from .rotations import euler_to_matrix
 from .skeleton import JOINT_NAMES, Motion, forward_kinematics
 
@@ -60,18 +60,6 @@ class AsfSkeleton:
         return np.array([names.index(n) for n in JOINT_NAMES])
 
 
-def _read_text(path) -> str:
-    try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as exc:
-        raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
-    try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError:
-        return data.decode("latin-1")
-
-
 def _floats(path, lineno, tokens, what):
     try:
         vals = [float(t) for t in tokens]
@@ -84,7 +72,7 @@ def _floats(path, lineno, tokens, what):
 
 def parse_asf(path) -> AsfSkeleton:
     """Parse an ASF file. Units become metres; angles are handled per ``:units``."""
-    text = _read_text(path)
+    text = read_text(path)
     lines = text.splitlines()
     length_unit, angle_deg = 1.0, True
     section = None
@@ -195,7 +183,7 @@ _FRAME_RE = re.compile(r"^\s*(\d+)\s*$")
 
 def parse_amc(path, skeleton: AsfSkeleton):
     """Parse an AMC file into per-bone DOF arrays ``{name: (T, ndof)}`` (file units)."""
-    text = _read_text(path)
+    text = read_text(path)
     lines = text.splitlines()
     rows: dict[str, list[str]] = {}
     first_line: dict[str, int] = {}

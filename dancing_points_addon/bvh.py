@@ -54,7 +54,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, read_text
 from .rotations import euler_to_matrix, matrix_to_euler
 from .skeleton import CMU_BVH_NAMES, JOINT_NAMES, PARENTS, Motion
 
@@ -157,16 +157,7 @@ class TrackedPoints(NamedTuple):
 
 
 def _read_lines(path):
-    try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as exc:
-        raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        text = data.decode("latin-1")
-    return text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    return read_text(path).replace("\r\n", "\n").replace("\r", "\n").split("\n")
 
 
 def _snap_fps(frame_time: float) -> float:

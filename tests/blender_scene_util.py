@@ -130,3 +130,17 @@ def load_png(path):
     finally:
         bpy.data.images.remove(img)
     return px.reshape(h, w, 4)
+
+
+class RecordingLayout:
+    """A stand-in for ``UILayout`` in background mode: records every call and
+    returns itself, so a panel's ``draw`` can run and be checked."""
+
+    def __init__(self):
+        self.calls = []
+
+    def __getattr__(self, name):
+        def f(*a, **k):
+            self.calls.append((name, a, k))
+            return self
+        return f

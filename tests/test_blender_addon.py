@@ -94,15 +94,7 @@ def test_panels_draw():
     """The sidebar sub-panels draw without errors (a recording stand-in layout)."""
     bsu.fresh_scene()
 
-    class Rec:
-        def __init__(self):
-            self.calls = []
-
-        def __getattr__(self, name):
-            def f(*a, **k):
-                self.calls.append((name, a, k))
-                return self
-            return f
+    Rec = bsu.RecordingLayout
 
         def __setattr__(self, name, value):
             object.__setattr__(self, name, value)

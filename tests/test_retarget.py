@@ -702,15 +702,7 @@ def test_panel_draws_and_rig_files_load(scene, tmp_path):
     """The Retarget sub-panel draws (a recording stand-in layout); a rig saved in a
     .blend and a meshopt .glb load through ``load_rig_file`` (the batch command's way in)."""
 
-    class Rec:
-        def __init__(self):
-            self.calls = []
-
-        def __getattr__(self, name):
-            def f(*a, **k):
-                self.calls.append((name, a, k))
-                return self
-            return f
+    Rec = bsu.RecordingLayout
 
     cls = bpy.types.Panel.bl_rna_get_subclass_py("VIEW3D_PT_dancing_points_retarget")
     assert cls is not None and cls.bl_parent_id == "VIEW3D_PT_dancing_points"
