@@ -96,9 +96,6 @@ def test_panels_draw():
 
     Rec = bsu.RecordingLayout
 
-        def __setattr__(self, name, value):
-            object.__setattr__(self, name, value)
-
     for pid in ("VIEW3D_PT_dancing_points_take", "VIEW3D_PT_dancing_points_synthesis",
                 "VIEW3D_PT_dancing_points_preview"):
         cls = bpy.types.Panel.bl_rna_get_subclass_py(pid)
