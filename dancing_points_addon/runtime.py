@@ -43,6 +43,14 @@ def _quat_matrix(q) -> np.ndarray:
                      [n * (x * z - w * y), n * (y * z + w * x), 1 - n * (x * x + y * y)]])
 
 
+def _head_scale(heights) -> float:
+    """Scale from head heights seen at the start: their 90th percentile (the
+    upright head, not a dip) against the training leader's, within the scales of
+    users 1.35–2.10 m tall."""
+    s = TRAIN_HEAD_HEIGHT / float(np.percentile(heights, 90))
+    return float(np.clip(s, TRAIN_HEIGHT / 2.10, TRAIN_HEIGHT / 1.35))
+
+
 def _blend_root(a, b, w):
     """Root ``w`` of the way from ``a`` to ``b`` (position linear, heading normalised)."""
     out = a + w * (b - a)
@@ -143,8 +151,8 @@ class _Dancer:
 class Synthesizer:
     """Holds the three ONNX sessions and the rollout state.
 
-    ``height``: the leader's standing height in metres (None: estimated from the
-    head height seen so far). ``anchor_root``: each dancer's new root is the one
+    ``height``: the leader's standing height in metres (None: the training
+    leader's; "auto": estimated from the take's first second). ``anchor_root``: each dancer's new root is the one
     its inputs give for that frame (the leader's head; the follower's mapping
     prediction) rather than the tracker's own, so roots cannot drift. ``foot_lock``: contact-based foot locking (needs
     ``ik``); ``hand_ik``: put the leader's head and wrists exactly on the input
@@ -207,18 +215,19 @@ class Synthesizer:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
 
     def scale(self) -> float:
-        """Tracker scale: training height over the user's (paper §7 calibration).
-
-        Without a height, the user's head height is the median over the first
-        second of the take (:data:`CALIBRATION_FRAMES`); the live loop uses the
-        median so far until then, and the scale is fixed afterwards, so the
-        output skeleton keeps its size."""
-        if self.height:
+        """Tracker scale: training height over the user's (paper §7 calibration),
+        1 when no height is given. ``height="auto"`` estimates the user's head
+        height from the first second of the take (90th percentile; the live loop
+        uses the frames so far until then) and fixes the scale afterwards, so the
+        output skeleton keeps its size; a take that starts in a dip fools it."""
+        if self.height is None:
+            return 1.0
+        if self.height != "auto":
             return TRAIN_HEIGHT / float(self.height)
         if self._calibration is not None:
             return self._calibration
         if self._head_heights:
-            s = TRAIN_HEAD_HEIGHT / float(np.median(self._head_heights))
+            s = _head_scale(self._head_heights)
             if len(self._head_heights) >= CALIBRATION_FRAMES:
                 self._calibration = s
             return s
@@ -278,7 +287,7 @@ class Synthesizer:
         """One 30 Hz frame: device positions (3, 3), quaternions (3, 4) (w, x, y, z),
         ``valid`` (3,) tracking flags. Returns (leader, follower) :class:`DuetFrame`."""
         tracked, head_rot, root = self._clean(positions, quats, valid)
-        if valid[0] and self.height is None:
+        if valid[0] and self.height == "auto":
             self._head_heights.append(tracked[0, 1])
         s = self.scale()
         tracked_s = tracked * s
@@ -361,11 +370,10 @@ class Synthesizer:
 
         tk = resample_take(take, F.FPS)
         self.reset()
-        if self.height is None:  # calibrate on the take's first second before the loop
+        if self.height == "auto":  # calibrate on the take's first second before the loop
             first = tk.valid[:CALIBRATION_FRAMES, 0]
             if first.any():
-                heights = tk.positions[:CALIBRATION_FRAMES, 0, 1][first]
-                self._calibration = TRAIN_HEAD_HEIGHT / float(np.median(heights))
+                self._calibration = _head_scale(tk.positions[:CALIBRATION_FRAMES, 0, 1][first])
         T = tk.n_frames
         out = {k: np.empty((T, 31, 3)) for k in ("lp", "fp")}
         out.update({k: np.empty((T, 31, 3, 3)) for k in ("lr", "fr")})
