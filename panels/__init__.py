@@ -45,6 +45,13 @@ class _SubPanel:
     bl_parent_id = "VIEW3D_PT_dancing_points"
 
 
+def _split_layout(layout, context):
+    """A sub-panel's layout in property-split style, and the scene's settings."""
+    layout.use_property_split = True
+    layout.use_property_decorate = False
+    return layout, getattr(context.scene, "dancing_points", None)
+
+
 def _active_take(context):
     from ..operators.props import active_take
     return active_take(context)
@@ -55,10 +62,7 @@ class VIEW3D_PT_dancing_points_take(_SubPanel, bpy.types.Panel):
     bl_label = "Take"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        settings = getattr(context.scene, "dancing_points", None)
+        layout, settings = _split_layout(self.layout, context)
         layout.operator("dancing_points.import_take", text="Import Take...", icon='IMPORT')
         if settings is None:
             return
@@ -79,10 +83,7 @@ class VIEW3D_PT_dancing_points_synthesis(_SubPanel, bpy.types.Panel):
     bl_label = "Synthesis"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        settings = getattr(context.scene, "dancing_points", None)
+        layout, settings = _split_layout(self.layout, context)
         if settings is None:
             return
         layout.prop(settings, "foot_lock")
@@ -100,10 +101,7 @@ class VIEW3D_PT_dancing_points_preview(_SubPanel, bpy.types.Panel):
     bl_options = {'DEFAULT_CLOSED'}
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        settings = getattr(context.scene, "dancing_points", None)
+        layout, settings = _split_layout(self.layout, context)
         if settings is None:
             return
         layout.prop(settings, "preview_path")
