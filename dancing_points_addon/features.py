@@ -117,14 +117,6 @@ def split_tracking_output(y: np.ndarray):
     return rel, pos, rot, con
 
 
-def pose_to_world(pos_local, rot_local, root):
-    return to_world(pos_local, root), rot_to_world(rot_local, root)
-
-
-def pose_to_local(pos_world, rot_world, root):
-    return to_local(pos_world, root), rot_to_local(rot_world, root)
-
-
 def window_indices(t: np.ndarray, n: int, offsets: np.ndarray) -> np.ndarray:
     """Frame indices ``t + offsets`` clamped to ``[0, n)`` (padding by repetition)."""
     return np.clip(t[:, None] + offsets[None, :], 0, n - 1)

@@ -147,12 +147,3 @@ def rotation_angle(m: np.ndarray) -> np.ndarray:
     """Angle (radians) of rotation matrices."""
     tr = np.trace(m, axis1=-2, axis2=-1)
     return np.arccos(np.clip((tr - 1.0) * 0.5, -1.0, 1.0))
-
-
-def orthonormalize(m: np.ndarray) -> np.ndarray:
-    """Nearest rotation matrix (SVD), for network outputs that drift off SO(3)."""
-    u, _, vt = np.linalg.svd(m)
-    d = np.sign(np.linalg.det(u @ vt))
-    u = u.copy()
-    u[..., :, -1] *= d[..., None]
-    return u @ vt

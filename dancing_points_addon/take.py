@@ -387,20 +387,10 @@ def take_from_motion(motion: Motion) -> Take:
                              rot[:, lw], rot[:, rw], {}, motion.source)
 
 
-def rest_height(bone_vectors: np.ndarray) -> float:
-    """Standing height estimate (m) of a SPEC §2 skeleton from its rest bone vectors:
-    top of the ``head`` bone above the lowest foot point, in the rest pose."""
-    from .skeleton import PARENTS
-    ends = np.zeros((len(PARENTS), 3))
-    for j in range(len(PARENTS)):
-        ends[j] = (ends[PARENTS[j]] if PARENTS[j] >= 0 else 0.0) + bone_vectors[j]
-    return float(ends[HEAD_BONE, 1] - ends[:, 1].min())
+INPUT_TYPES = (".csv", ".amc", ".bvh")
 
 
 # --------------------------------------------------------------------------- any input
-
-INPUT_TYPES = (".csv", ".amc", ".bvh")
-
 
 def load_input(path, asf=None, input_fps=None, height=None) -> Take:
     """Any supported input as a take at its source rate.
