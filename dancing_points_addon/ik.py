@@ -23,7 +23,8 @@ touch: numpy's per-call overhead (~1 µs) would dominate such tiny problems.
 """
 from __future__ import annotations
 
-from math import atan2, cos, sin, sqrt
+from itertools import chain
+from math import atan2, cos, isfinite, pi, sin, sqrt
 
 import numpy as np
 
@@ -316,7 +317,7 @@ def _rot_scale(D, w):
 
 class _Side:
     __slots__ = ("on_a", "on_b", "armed_a", "armed_b", "lock_a", "lock_b",
-                 "off_t", "off_f", "k", "rb")
+                 "off_t", "off_f", "k", "rb", "lift")
 
     def __init__(self):
         self.on_a = self.on_b = False
@@ -326,6 +327,7 @@ class _Side:
         self.off_f = (0.0, 0.0, 0.0)  # transition offset of the foot vector
         self.k = 1 << 30  # frames since the last transition
         self.rb = None  # leg deltas (femur, tibia, foot) being blended out after a release
+        self.lift = None  # (planted ankle height, step height) of the catch-up step after a release
 
 
 class FootLocker:
@@ -365,6 +367,12 @@ class FootLocker:
     scaled back to identity about their axes, so the knee swings back
     smoothly even when the locked leg was stretched straight and the
     prediction is bent.
+    A full release is a catch-up *step*, not a slide: while the leg blends
+    back, the ankle is kept at least ``step_height · sin(π k / N)`` above its
+    planted height (k frames since the release; ``step_height`` grows with the
+    distance to travel: ``clamp(step_scale · d, step_height, step_max)``), so
+    the foot leaves the floor on the first frame and lands on the last,
+    instead of skating along it.
     A lock whose predicted point drifts farther than ``max_drift`` (m) from it
     is released; that point can lock again when its contact probability has
     fallen below ``off`` or the release blend is over.
@@ -372,8 +380,9 @@ class FootLocker:
     straight towards it (the ankle then misses the lock by the shortfall).
     """
 
-    def __init__(self, on: float = 0.6, off: float = 0.4, blend_frames: int = 6,
-                 max_drift: float = 0.15, floor=None, pole_forward: float = 0.1):
+    def __init__(self, on: float = 0.6, off: float = 0.4, blend_frames: int = 8,
+                 max_drift: float = 0.15, floor=None, pole_forward: float = 0.1,
+                 step_height: float = 0.06, step_scale: float = 0.3, step_max: float = 0.12):
         if not off <= on:
             raise ValueError("off threshold must not exceed the on threshold")
         self.on = float(on)
@@ -381,6 +390,7 @@ class FootLocker:
         self.blend_frames = max(int(blend_frames), 1)
         self.max_drift = float(max_drift)
         self.pole_forward = float(pole_forward)
+        self.step_height, self.step_scale, self.step_max = float(step_height), float(step_scale), float(step_max)
         self.floor = None if floor is None else [float(x) for x in np.asarray(floor).reshape(4)]
         j = _J
         # rows gathered per frame: hip, knee, ankle, ball, toe (left, then right)
@@ -508,6 +518,9 @@ class FootLocker:
                 # full release: the old mode's IK on this frame (so the output
                 # is continuous), then its deltas blend out in rotation space
                 st.rb = self._solve(rows, T_old, F_old, fwd)[1]
+                d = sqrt((T_old[0] - a[0]) ** 2 + (T_old[2] - a[2]) ** 2)
+                h = min(max(self.step_scale * d, self.step_height), self.step_max)
+                st.lift = (T_old[1], h) if h > 0.0 else None
             else:
                 st.rb = None
                 T, F = self._mode(new_a, new_b, a, fx, fy, fz)
@@ -522,7 +535,15 @@ class FootLocker:
             w = 1.0 - _smooth(st.k / N)
             st.k += 1
             D1, D2, D3 = (_rot_scale(D, w) for D in st.rb)
-            return self._fk(rows, D1, D2, D3), (D1, D2, D3)
+            pts = self._fk(rows, D1, D2, D3)
+            if st.lift is not None:
+                y = st.lift[0] + st.lift[1] * sin(pi * st.k / N)
+                na, nb = pts[1], pts[2]
+                if na[1] < y:  # lift the ankle (the foot keeps its blended orientation)
+                    T = (na[0], y, na[2])
+                    pts, (R1, R2, R3) = self._solve(rows, T, (nb[0] - na[0], nb[1] - na[1], nb[2] - na[2]), fwd)
+                    return pts, (R1, R2, R3)
+            return pts, (D1, D2, D3)
 
         T, F = self._mode(new_a, new_b, a, fx, fy, fz)
         if st.k < N:
@@ -667,11 +688,10 @@ class EndEffectorIK:
         Returns new ``(positions, rotations)`` arrays."""
         P = np.array(positions, dtype=np.float64)
         R = np.array(rotations, dtype=np.float64)
-        tg = np.asarray(targets, dtype=np.float64)
-        ok = np.isfinite(tg).all(axis=1).tolist()
+        tg = np.asarray(targets, dtype=np.float64).tolist()
+        ok = [isfinite(x) and isfinite(y) and isfinite(z) for x, y, z in tg]
         if not any(ok):
             return P, R
-        tg = tg.tolist()
         o = self._FIRST
         pts = P[o:].tolist()
         delta = {}
@@ -680,10 +700,12 @@ class EndEffectorIK:
         for side in (0, 1):
             if ok[1 + side]:
                 self._solve_arm(pts, delta, self._arms[side], tg[1 + side])
-        P[o:] = pts
+        # back to arrays (fromiter: cheaper than numpy parsing nested sequences)
+        P[o:] = np.fromiter(chain.from_iterable(pts), np.float64, 3 * len(pts)).reshape(-1, 3)
         if delta:
             bones = [b + o for b in delta]
-            R[bones] = np.matmul(np.array(list(delta.values())).reshape(-1, 3, 3), R[bones])
+            D = np.fromiter(chain.from_iterable(delta.values()), np.float64, 9 * len(delta)).reshape(-1, 3, 3)
+            R[bones] = np.matmul(D, R.take(bones, axis=0))
         return P, R
 
     @staticmethod

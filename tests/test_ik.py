@@ -364,3 +364,33 @@ def test_end_effector_ik_step_time(take):
     us = (time.perf_counter() - t0) / n * 1e6
     print(f"\nEndEffectorIK.step: {us:.1f} µs")
     assert us < 2000
+
+
+def test_foot_locker_drift_release_is_a_step_not_a_slide(take):
+    """A planted foot whose prediction slides away (contact stays on) is released
+    when it drifts past ``max_drift`` and catches up by stepping: every blend
+    frame between release and landing is above the SPEC skating height, so the
+    foot never moves horizontally while low."""
+    gt, rot, _ = take
+    T = 60
+    P = np.repeat(gt[100:101], T, axis=0)
+    R = np.repeat(rot[100:101], T, axis=0)
+    leg = [J["ltibia"], J["lfoot"], J["ltoes"]]
+    P[:, leg] += np.linspace(0, 0.6, T)[:, None, None] * [1.0, 0, 0]  # slides 60 cm over 2 s
+    C = np.zeros((T, 4))
+    C[:, 0] = C[:, 1] = 0.9  # contact all along
+    locker = FootLocker()
+    out, _, locks = _run_locker(locker, P, R, C)
+    ankle, ball = J["ltibia"], J["lfoot"]
+    released = [t for t in range(1, T) if locks[t - 1][0][0] is not None and locks[t][0][0] is None]
+    assert released, "the drifting lock must be released"
+    plant = out[released[0] - 1, ankle, 1]
+    for t in released:
+        mid = out[t + 1:t + locker.blend_frames - 2]
+        assert (mid[:, ankle, 1] > plant + 0.025).all() and (mid[:, ball, 1] > P[t, ball, 1] + 0.02).all()
+    low = (out[:, [ankle, ball], 1] - out[:, [ankle, ball], 1].min(0)) < 0.025
+    speed = np.linalg.norm(np.diff(out[:, [ankle, ball]][..., [0, 2]], axis=0), axis=-1) * 30.0
+    pairs = low[1:] & low[:-1]
+    print(f"\ndrifting foot: {len(released)} release(s); horizontal speed on low frame pairs "
+          f"{speed[pairs].mean() * 100:.2f} cm/s (prediction: 30 cm/s)")
+    assert speed[pairs].mean() < 0.25 * 0.30  # the slide itself is 30 cm/s

@@ -231,10 +231,9 @@ def test_hand_ik_puts_head_and_wrists_on_the_input(take10):
     assert err[score].mean() < 0.01
 
 
-def test_foot_locking_reduces_skating(synth, take08):
-    """Issue 5 asks for at most half the unlocked skating; measured now (see the
-    printout and models/README.md) locking removes only part of it, so this
-    asserts that it reduces skating, not the target."""
+def test_foot_locking_halves_skating(synth, take08):
+    """SPEC §6 skating of the leader on a real test take: with locking at most
+    half of what it is without, and no more than the ground truth's own."""
     from dancing_points_addon.metrics import foot_skating
 
     take, true_l, _, _, _ = take08
@@ -246,4 +245,5 @@ def test_foot_locking_reduces_skating(synth, take08):
     s_true = foot_skating(true_l, m)
     lock, nolock, gt = (s[0] / max(s[1], 1) for s in (s_lock, s_free, s_true))
     print(f"\nleader foot skating (cm/s): locked {lock:.2f}, unlocked {nolock:.2f}, ground truth {gt:.2f}")
-    assert lock < nolock
+    assert lock <= 0.5 * nolock
+    assert lock <= gt

@@ -34,7 +34,8 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     info = T.train_model(model, x[:512], y[:512], epochs=2, batch=64)
     assert np.isfinite(info["final"]["rec"])
     path = str(tmp_path / f"{name}.onnx")
-    export(model, name, path, n_in, {"default_pose": T.default_pose(x)} if kind != "mapping" else None)
+    extra = {"default_pose": T.default_pose(x)} if kind != "mapping" else None
+    export(model, name, path, n_in, extra, weights="fp32")
     m = onnx.load(path)
     onnx.checker.check_model(m)
     assert m.opset_import[0].version >= 17
@@ -50,6 +51,21 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     err = np.abs(got - want).max()
     print(f"\n{kind}: onnxruntime vs torch max |diff| = {err:.2e}")
     assert err < 1e-4
+
+    # the shipped form: int8 weight-only quantised, same metadata, close to float32
+    qpath = str(tmp_path / f"{name}_int8.onnx")
+    export(model, name, qpath, n_in, extra)
+    qm = onnx.load(qpath)
+    onnx.checker.check_model(qm)
+    assert {n.op_type for n in qm.graph.node} & {"MatMulNBits"} and "Gemm" not in {n.op_type for n in qm.graph.node}
+    qmeta = {p.key: p.value for p in qm.metadata_props}
+    assert qmeta["weights"].startswith("int8") and qmeta["layout"] == meta["layout"]
+    assert sum(t.raw_data.__len__() for t in qm.graph.initializer) < 0.4 * sum(
+        t.raw_data.__len__() for t in m.graph.initializer)
+    qgot = ort.InferenceSession(qpath, providers=["CPUExecutionProvider"]).run(None, {"x": xb})[0]
+    rel = np.abs(qgot - want).max() / np.abs(want).max()
+    print(f"{kind}: int8 vs torch max |diff| / max |y| = {rel:.2e}")
+    assert rel < 0.01
 
 
 def test_training_samples_stay_inside_train_frames(salsa_dir, clips):

@@ -31,13 +31,15 @@ from dancing_points_addon.take import read_take, take_from_motion, write_take
 SCORE_FROM = 1.0  # seconds
 
 
-def test_segments(data_dir, takes=SALSA_TAKES):
-    """Per take: (name, leader 60 Hz test Motion slice, leader 30 Hz GT, follower 30 Hz GT, bone lengths)."""
+def test_segments(data_dir, takes=SALSA_TAKES, split="test"):
+    """Per take: (name, leader 60 Hz test Motion slice, leader 30 Hz GT, follower 30 Hz GT, bone lengths).
+    ``split="train"`` gives the train frames instead: what the runtime's own
+    settings (foot locking, IK) are tuned on, never the test frames."""
     for take in takes:
         lead = load_amc(os.path.join(data_dir, f"{LEADER}_{take}.amc"))
         fol = load_amc(os.path.join(data_dir, f"{FOLLOWER}_{take}.amc"))
-        a, b = split_range(lead.n_frames, "test")
-        lead60 = type(lead)(lead.positions[2 * a:], lead.rotations[2 * a:], lead.fps, lead.bone_vectors,
+        a, b = split_range(lead.n_frames, split)
+        lead60 = type(lead)(lead.positions[2 * a:2 * b], lead.rotations[2 * a:2 * b], lead.fps, lead.bone_vectors,
                             lead.source)
         yield {"take": take, "lead60": lead60,
                "lead": (lead.positions[::2][a:b], lead.rotations[::2][a:b]),
@@ -237,12 +239,14 @@ def main(argv=None):
     ap.add_argument("--ablations", default=None, help="folder with vanilla_*.onnx and pastinput_*.onnx")
     ap.add_argument("--takes", default=None, help="comma list of take numbers (default: all 13)")
     ap.add_argument("--no-foot-lock", action="store_true")
+    ap.add_argument("--split", choices=("test", "train"), default="test",
+                    help="train: score the train frames (for tuning runtime settings; the reported table is test)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
     args = ap.parse_args(argv)
 
     takes = tuple(args.takes.split(",")) if args.takes else SALSA_TAKES
-    segments = list(test_segments(args.data, takes))
+    segments = list(test_segments(args.data, takes, args.split))
     nets = {k: OnnxNet(os.path.join(args.models, f)) for k, f in MODEL_FILES.items()}
     lock = not args.no_foot_lock
     systems = {"full": lambda: Synthesizer(nets=nets, foot_lock=lock)}

@@ -109,6 +109,8 @@ def main(argv=None):
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto")
     ap.add_argument("--cache", default="cache")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--weights", choices=("int8", "fp32"), default="int8",
+                    help="exported weights: int8 weight-only quantised (shipped) or float32")
     args = ap.parse_args(argv)
 
     if args.threads:
@@ -129,7 +131,7 @@ def main(argv=None):
         m = MappingNet(F.MAP_IN, F.MAP_OUT, cfg["map_hidden"])
         info = train_model(m, x, y, cfg["map_epochs"], device=device, log=log, seed=args.seed)
         export(m, "mapping", os.path.join(args.out, "mapping.onnx"), F.MAP_IN,
-               {"hidden": cfg["map_hidden"], "train": info})
+               {"hidden": cfg["map_hidden"], "train": info}, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": cfg["map_hidden"]})
         report["models"]["mapping"] = info
     mapping_fn = None
@@ -167,7 +169,7 @@ def main(argv=None):
         meta = {"hidden": cfg["track_hidden"], "role": role, "train": info,
                 "default_pose": default_pose(x, where, clips)}
         meta.update(extra or {})
-        export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta)
+        export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), meta)
         report["models"][name] = info
 
