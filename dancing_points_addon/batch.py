@@ -125,6 +125,11 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
     p.add_argument("--no-foot-lock", action="store_true", help="turn contact-based foot locking off")
     p.add_argument("--no-hand-ik", action="store_true",
                    help="leave the leader's head and wrists where the network puts them (no IK onto the input)")
+    p.add_argument("--leader-rig", default=None, metavar="FILE",
+                   help="also retarget the leader onto the armature of this .blend, .glb/.gltf or .fbx file "
+                        "(formats blend and fbx, --render)")
+    p.add_argument("--follower-rig", default=None, metavar="FILE",
+                   help="the same for the follower")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (result lines only)")
 
 
@@ -965,7 +970,33 @@ def job_options(args, model_dir) -> dict:
     return {"models": model_dir, "threads": int(args.threads or 1),
             "height": args.height, "input_fps": args.input_fps,
             "asf": os.path.abspath(args.asf) if args.asf else None,
-            "no_foot_lock": bool(args.no_foot_lock), "no_hand_ik": bool(args.no_hand_ik)}
+            "no_foot_lock": bool(args.no_foot_lock), "no_hand_ik": bool(args.no_hand_ik),
+            "leader_rig": _abs(getattr(args, "leader_rig", None)),
+            "follower_rig": _abs(getattr(args, "follower_rig", None))}
+
+
+RIG_TYPES = (".blend", ".glb", ".gltf", ".fbx")
+
+
+def _abs(path):
+    return os.path.abspath(os.path.expanduser(path)) if path else None
+
+
+def check_rigs(args, needs_bpy) -> None:
+    """The ``--leader-rig`` / ``--follower-rig`` files exist, have a rig file type
+    and come with an output that holds armatures (blend, fbx, --render)."""
+    for opt in ("leader_rig", "follower_rig"):
+        path = getattr(args, opt, None)
+        if not path:
+            continue
+        flag = "--" + opt.replace("_", "-")
+        if not os.path.isfile(os.path.expanduser(path)):
+            raise InputError(path, f"no such file ({flag})")
+        if os.path.splitext(path)[1].lower() not in RIG_TYPES:
+            raise InputError(path, f"{flag} takes a {', '.join(RIG_TYPES)} file")
+        if not needs_bpy:
+            raise InputError(path, f"{flag} works with the blend and fbx formats or --render "
+                                   f"(npz and bvh hold the Dancing Points skeleton only)")
 
 
 def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
@@ -995,6 +1026,7 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
     model_dir = resolve_model_dir(args.models)
     if args.asf and not os.path.isfile(args.asf):
         raise InputError(args.asf, "no such ASF file")
+    check_rigs(args, needs_bpy)
     if args.asf and needs_bpy:
         raise InputError(args.asf, "--asf works with the npz and bvh formats only (without --render); "
                                    "put the ASF beside the AMC files instead")

@@ -10,8 +10,9 @@ cleaning, feature building, decoding). A duet frame holds two characters, so
 per character-frame = frame time / 2.
 
 The compute floor is the bare matrix–vector products of the same weights in
-numpy on the same machine (one ``W @ x`` per Linear layer of the three
-networks, no activations): what the networks' arithmetic costs at the least.
+numpy on the same machine (one float32 ``W @ x`` per Linear layer of the three
+networks, no activations; int8 layers dequantised): what the networks'
+arithmetic costs at the least in plain float32.
 """
 from __future__ import annotations
 
@@ -53,13 +54,30 @@ class _TimedSynth(Synthesizer):
 
 
 def onnx_weights(path):
-    """The 2-D float initializers of an ONNX file, in graph order (needs ``onnx``)."""
+    """The Linear layers' weights of an ONNX file as float32 ``(out, in)`` matrices,
+    in graph order (needs ``onnx``): float initializers as they are, int8
+    ``MatMulNBits`` layers dequantised (blockwise ``(q - zero) · scale``)."""
     import onnx
-    from onnx import numpy_helper
+    from onnx import helper, numpy_helper
 
     m = onnx.load(path)
-    mats = [numpy_helper.to_array(i) for i in m.graph.initializer]
-    return [w.astype(np.float32) for w in mats if w.ndim == 2 and min(w.shape) > 1]
+    inits = {i.name: numpy_helper.to_array(i) for i in m.graph.initializer}
+    mats = []
+    for n in m.graph.node:
+        if n.op_type == "MatMulNBits":
+            a = {x.name: helper.get_attribute_value(x) for x in n.attribute}
+            N, K, bs = a["N"], a["K"], a["block_size"]
+            q = inits[n.input[1]].reshape(N, -1, bs).astype(np.float32)
+            scale = inits[n.input[2]].reshape(N, -1, 1).astype(np.float32)
+            zero = 2.0 ** (a["bits"] - 1)  # symmetric: zero point in the middle of the range
+            mats.append(((q - zero) * scale).reshape(N, -1)[:, :K])
+        elif n.op_type in ("Gemm", "MatMul"):
+            w = inits.get(n.input[1])
+            if w is not None and w.ndim == 2 and min(w.shape) > 1:
+                transposed = n.op_type == "MatMul" or not any(
+                    x.name == "transB" and helper.get_attribute_value(x) for x in n.attribute)
+                mats.append((w.T if transposed else w).astype(np.float32))
+    return mats
 
 
 def compute_floor(model_dir, repeats=2000):
@@ -68,7 +86,6 @@ def compute_floor(model_dir, repeats=2000):
     chain = []
     for f in MODEL_FILES.values():
         for w in onnx_weights(os.path.join(model_dir, f)):
-            # torch exports Linear as Gemm (W: out×in) or MatMul (W: in×out)
             chain.append(np.ascontiguousarray(w))
     xs = [np.random.default_rng(0).standard_normal(w.shape[1], dtype=np.float32) for w in chain]
     for w, x in zip(chain, xs):  # warm up

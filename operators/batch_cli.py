@@ -142,6 +142,24 @@ def _render_video(context, tmp, n_frames, progress, f0, f1):
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def _retarget_onto_rigs(context, duet_coll, opts, path):
+    """Import the ``--leader-rig`` / ``--follower-rig`` files and bake the duet onto
+    them (``dancing_points.retarget_duet``'s path: rest alignment, proportions,
+    foot locking on the rigs' legs, held hands closed); the default bodies are hidden."""
+    from . import retarget
+
+    rigs = {}
+    try:
+        for role in ("leader", "follower"):
+            rig_path = opts.get(role + "_rig")
+            if rig_path:
+                rigs[role] = retarget.load_rig_file(rig_path, context)
+        retarget.retarget_duet_onto(rigs.get("leader"), rigs.get("follower"), duet_coll, context,
+                                    foot_lock=not opts.get("no_foot_lock"))
+    except (retarget.RetargetFailure, retarget.rt.RetargetError) as exc:
+        raise BatchError("{:s}: retarget: {:s}".format(path, retarget._one_line(exc))) from None
+
+
 def convert_job(job, progress):
     """One take of a batch in this Blender process: write the outputs of
     ``job["temps"]`` (``{kind: temporary path}``; kinds ``blend``, ``fbx``, ``mp4``,
@@ -178,7 +196,9 @@ def convert_job(job, progress):
     duet = synth.synthesize(take, progress=lambda i, n: progress(0.1 + 0.6 * i / max(n, 1)))
     core_batch.write_duet_files(temps, duet)
     if any(k in temps for k in ("blend", "fbx", "mp4")):
-        bake.bake_duet(context, duet, coll.name, coll.dancing_points.frame_start)
+        duet_coll, _ = bake.bake_duet(context, duet, coll.name, coll.dancing_points.frame_start)
+        if opts.get("leader_rig") or opts.get("follower_rig"):
+            _retarget_onto_rigs(context, duet_coll, opts, path)
     progress(0.8)
     if "blend" in temps:
         res = bpy.ops.wm.save_as_mainfile(filepath=temps["blend"], copy=True, check_existing=False)

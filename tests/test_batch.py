@@ -311,6 +311,56 @@ def test_render(tmp_path, salsa_dir):
     assert sorted(os.listdir(out)) == [batch.REPORT_NAME, "short.mp4", "short.npz"]
 
 
+def test_rigs_get_the_duet(tmp_path, salsa_dir):
+    """--leader-rig / --follower-rig: the two avatars of ../shared/assets (GLB)
+    are imported into each .blend and keyed on every frame with the retargeted
+    duet; the default bodies are hidden."""
+    from conftest import ASSETS
+
+    rigs = {"leader": ASSETS / "White_M_1_Casual.glb", "follower": ASSETS / "White_F_1_Casual.glb"}
+    if not all(p.is_file() for p in rigs.values()):
+        pytest.skip("no avatars in ../shared/assets")
+    write_take(tmp_path / "short.csv", take_from_motion(cut(load_amc(salsa_dir / "60_06.amc"), 0, 120)))
+    out = tmp_path / "out"
+    res = run_batch(tmp_path / "short.csv", out, "blend", "--leader-rig", rigs["leader"],
+                    "--follower-rig", rigs["follower"], jobs=1)
+    assert res.returncode == 0, res.stdout + res.stderr
+    frames = read_report(out)["files"][0]["frames"]
+    got = run_bpy_script(f"""
+        import json, bpy
+        bpy.ops.wm.open_mainfile(filepath={str(out / "short.blend")!r})
+        arms = {{}}
+        for o in bpy.data.objects:
+            if o.type != 'ARMATURE':
+                continue
+            act = o.animation_data.action if o.animation_data else None
+            fcs = []
+            if act is not None:
+                fcs = list(getattr(act, "fcurves", []) or [])
+                if not fcs:
+                    for layer in act.layers:
+                        for strip in layer.strips:
+                            for bag in strip.channelbags:
+                                fcs.extend(bag.fcurves)
+            keys = sorted({{int(round(k.co[0])) for fc in fcs for k in fc.keyframe_points}})
+            skinned = [m.name for m in bpy.data.objects if m.type == 'MESH' and
+                       any(md.type == 'ARMATURE' and md.object == o for md in m.modifiers)]
+            arms[o.name] = [len(o.data.bones), len(keys), skinned]
+        hidden = sorted(o.name for o in bpy.data.objects if o.type == 'MESH' and o.hide_render)
+        print("RESULT " + json.dumps([arms, hidden]))
+        """)
+    arms, hidden = got
+    rig_arms = {k: v for k, v in arms.items() if k not in ("DP Leader", "DP Follower")}
+    assert {"DP Leader", "DP Follower"} <= set(arms) and len(rig_arms) == 2, arms
+    for name, (bones, keys, skinned) in rig_arms.items():
+        assert bones > 20 and keys == frames and skinned, (name, arms[name])  # keyed on every frame
+    assert hidden == ["DP Follower Body", "DP Leader Body"], hidden
+    # a rig with a format that holds no armature: one line, exit 2, nothing written
+    res = run_batch(tmp_path / "short.csv", tmp_path / "out2", "npz", "--leader-rig", rigs["leader"])
+    assert res.returncode == 2 and "--leader-rig works with the blend and fbx formats" in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr and not (tmp_path / "out2").exists()
+
+
 # --------------------------------------------------------------------------- existing outputs
 
 def test_never_overwrites_without_overwrite(takes, tmp_path):
