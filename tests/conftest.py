@@ -19,3 +19,28 @@ def salsa_dir():
     if not SALSA.exists():
         pytest.fail(f"shared data not found at {SALSA} (set DP_SHARED)")
     return SALSA
+
+
+# Blender 4.2-4.3's bpy module crashes (SIGSEGV) at interpreter exit once an
+# add-on with Python property callbacks (``poll=``/``update=``) was unregistered
+# while running (here: the atexit removal of the test extension repository), a
+# Blender bug fixed by 4.4 (reproduced with a 10-line PropertyGroup, bpy 4.2.0
+# and 4.2.23). On those versions the session ends by running the atexit
+# handlers and leaving with pytest's own status, before the crashing teardown.
+_EXIT_STATUS = [None]
+
+
+def pytest_sessionfinish(session, exitstatus):
+    _EXIT_STATUS[0] = int(exitstatus)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config):
+    bpy = sys.modules.get("bpy")
+    if bpy is None or _EXIT_STATUS[0] is None or bpy.app.version >= (4, 4, 0):
+        return
+    import atexit
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(_EXIT_STATUS[0])
