@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .representation import (rot6d, rot6d_to_matrix, rot_to_local, rot_to_world, root_compose,
+from .representation import (compose_rows, relative_rows, rot6d, rot6d_to_matrix, rot_to_local, rot_to_world,
                              root_relative, to_local, to_world)
 
 FPS = 30.0
@@ -48,10 +48,14 @@ def layout() -> dict:
 
 def mapping_input(roots: np.ndarray, tracked: np.ndarray) -> np.ndarray:
     """``roots (B, PAST, 4)``, ``tracked (B, PAST, 3, 3)`` world -> ``(B, MAP_IN)``."""
-    ref = roots[:, :1]
-    r = root_relative(ref, roots)
-    p = to_local(tracked, ref)
-    return np.concatenate([r, p.reshape(p.shape[:2] + (9,))], axis=-1).reshape(len(roots), -1)
+    B = len(roots)
+    ref = roots[:, 0]
+    out = np.empty((B * PAST, 13))
+    out[:, :4] = relative_rows(ref.T.repeat(PAST, axis=1), roots.reshape(-1, 4).T).T
+    # all points of a window in one (N, 3) @ (3, 3) product
+    p = to_local(tracked.reshape(-1, 3), ref[0]) if B == 1 else to_local(tracked.reshape(B, -1, 3), ref)
+    out[:, 4:] = p.reshape(-1, 9)
+    return out.reshape(B, MAP_IN)
 
 
 def _dancer_future(ref, roots, tracked):
@@ -71,28 +75,36 @@ def decode_mapping(y: np.ndarray, lead_root_t: np.ndarray):
     """``(B, MAP_OUT)`` -> per dancer (leader, follower): world roots ``(B, FUTURE, 4)``
     and tracked points in their own roots ``(B, FUTURE, 3, 3)``."""
     B = len(y)
-    y = y.reshape(B, FUTURE, 2, 13)
-    rel = y[..., :4].copy()
-    rel[..., 2:4] /= np.maximum(np.sqrt(np.einsum("...i,...i->...", rel[..., 2:4], rel[..., 2:4])), 1e-9)[..., None]
-    roots = root_compose(lead_root_t[:, None, None], rel)  # both dancers at once
-    tracked = y[..., 4:].reshape(B, FUTURE, 2, 3, 3)
+    y = y.reshape(B * FUTURE * 2, 13)  # batch × frame × dancer
+    rel = y[:, :4].T.astype(np.float64, order="C")  # component rows (4, n): see compose_rows
+    h = rel[2:4]
+    h /= np.maximum(np.sqrt(np.einsum("ij,ij->j", h, h)), 1e-9)
+    roots = compose_rows(lead_root_t.T.repeat(FUTURE * 2, axis=1), rel)  # both dancers at once
+    roots = np.ascontiguousarray(roots.T).reshape(B, FUTURE, 2, 4)
+    tracked = y[:, 4:].astype(np.float64).reshape(B, FUTURE, 2, 3, 3)
     return [(roots[:, :, d], tracked[:, :, d]) for d in range(2)]
 
 
 def pose_features(pos_local, rot_local, contacts) -> np.ndarray:
     """``(B, 31, 3)``, ``(B, 31, 3, 3)``, ``(B, 4)`` -> ``(B, POSE_DIM)``."""
     B = len(pos_local)
-    return np.concatenate([pos_local.reshape(B, -1), rot6d(rot_local).reshape(B, -1),
-                           contacts.reshape(B, 4)], axis=-1)
+    out = np.empty((B, POSE_DIM))
+    out[:, :93] = pos_local.reshape(B, -1)
+    out[:, 93:279] = np.swapaxes(rot_local[..., :2], -1, -2).reshape(B, -1)  # rot6d: the first two columns
+    out[:, 279:] = contacts.reshape(B, 4)
+    return out
 
 
 def tracking_input(pose_feat, f0, key_roots, key_tracked_local) -> np.ndarray:
     """Pose features ``(B, POSE_DIM)``, current root ``f0 (B, 4)``, world roots at the
     keys ``(B, K, 4)`` and tracked points in their own roots ``(B, K, 3, 3)``."""
-    B = len(pose_feat)
-    r = root_relative(f0[:, None], key_roots)
-    fut = np.concatenate([r, key_tracked_local.reshape(B, len(TRACK_KEYS), 9)], axis=-1)
-    return np.concatenate([pose_feat, fut.reshape(B, -1)], axis=-1)
+    B, K = len(pose_feat), len(TRACK_KEYS)
+    out = np.empty((B, TRACK_IN))
+    out[:, :POSE_DIM] = pose_feat
+    fut = out[:, POSE_DIM:].reshape(B, K, 13)
+    fut[..., :4] = relative_rows(f0.T.repeat(K, axis=1), key_roots.reshape(-1, 4).T).T.reshape(B, K, 4)
+    fut[..., 4:] = key_tracked_local.reshape(B, K, 9)
+    return out
 
 
 def tracking_target(f0, key_roots, key_pos_world, key_rot_world, key_contacts) -> np.ndarray:
@@ -110,7 +122,8 @@ def split_tracking_output(y: np.ndarray):
     B = len(y)
     y = y.reshape(B, -1, KEY_OUT)  # all keys (training) or only the first (exported)
     rel = y[..., :4].copy()
-    rel[..., 2:4] /= np.maximum(np.linalg.norm(rel[..., 2:4], axis=-1, keepdims=True), 1e-9)
+    h = rel[..., 2:4]
+    h /= np.maximum(np.sqrt(np.einsum("...i,...i->...", h, h)), 1e-9)[..., None]
     pos = y[..., 4:4 + 93].reshape(B, -1, N_JOINTS, 3)
     rot = rot6d_to_matrix(y[..., 97:97 + 186].reshape(B, -1, N_JOINTS, 6))
     con = y[..., 283:287]

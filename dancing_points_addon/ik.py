@@ -741,9 +741,10 @@ class EndEffectorIK:
         self._compose(delta, UN, D)
         if en > 1e-12:
             # the rest of the error lies along the neck: stretch the spine
-            for i in self._above_thorax:
-                p = pts[i]
-                pts[i] = (p[0] + ex, p[1] + ey, p[2] + ez)
+            if ex or ey or ez:  # (nothing to move with max_stretch=0)
+                for i in self._above_thorax:
+                    p = pts[i]
+                    pts[i] = (p[0] + ex, p[1] + ey, p[2] + ez)
             lb, ub, th = pts[LB], pts[UB], pts[TH]
             lb2 = (lb[0] + ex / 3.0, lb[1] + ey / 3.0, lb[2] + ez / 3.0)
             ub2 = (ub[0] + 2.0 * ex / 3.0, ub[1] + 2.0 * ey / 3.0, ub[2] + 2.0 * ez / 3.0)

@@ -7,6 +7,8 @@ number. ``θ`` is the heading about +Y measured from +Z (a dancer facing +Z has
 """
 from __future__ import annotations
 
+from math import sqrt
+
 import numpy as np
 
 from .skeleton import FEET, HEAD_BONE, TRACKED
@@ -23,6 +25,13 @@ FLOOR_PERCENTILE = 5.0
 def norm(x: np.ndarray) -> np.ndarray:
     """Euclidean norm over the last axis (``np.linalg.norm`` costs more on small arrays)."""
     return np.sqrt(np.einsum("...i,...i->...", x, x))
+
+
+def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot products of component-major vectors ``(3, …)``, summed in the order
+    :func:`norm`'s einsum uses (``(x + z) + y``), so both give the same bits."""
+    p = a * b
+    return (p[0] + p[2]) + p[1]
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -78,6 +87,9 @@ def root_from_motion(positions: np.ndarray, rotations: np.ndarray) -> np.ndarray
 
 def root_rotation(root: np.ndarray) -> np.ndarray:
     """``Ry(θ)`` matrices ``(…, 3, 3)``."""
+    if root.ndim <= 2 and root.size <= 16:  # a few frames: a literal costs less than seven array writes
+        out = [[[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]] for _, _, c, s in root.reshape(-1, 4).tolist()]
+        return np.array(out if root.ndim == 2 else out[0], dtype=root.dtype)
     c, s = root[..., 2], root[..., 3]
     out = np.zeros(root.shape[:-1] + (3, 3), dtype=root.dtype)
     out[..., 0, 0] = c
@@ -89,6 +101,9 @@ def root_rotation(root: np.ndarray) -> np.ndarray:
 
 
 def _origin(root):
+    if root.ndim <= 2 and root.size <= 16:
+        out = [[x, 0.0, z] for x, z, _, _ in root.reshape(-1, 4).tolist()]
+        return np.array(out if root.ndim == 2 else out[0], dtype=root.dtype)
     o = np.zeros(root.shape[:-1] + (3,), dtype=root.dtype)
     o[..., 0] = root[..., 0]
     o[..., 2] = root[..., 1]
@@ -102,7 +117,7 @@ def to_local(points: np.ndarray, root: np.ndarray) -> np.ndarray:
 
 def to_world(points: np.ndarray, root: np.ndarray) -> np.ndarray:
     """Root-frame points ``(…, N, 3)`` to world."""
-    return points @ np.swapaxes(root_rotation(root), -1, -2) + _origin(root)[..., None, :]
+    return points @ root_rotation(root).swapaxes(-1, -2) + _origin(root)[..., None, :]
 
 
 def rot_to_local(rot: np.ndarray, root: np.ndarray) -> np.ndarray:
@@ -112,6 +127,12 @@ def rot_to_local(rot: np.ndarray, root: np.ndarray) -> np.ndarray:
 
 def rot_to_world(rot: np.ndarray, root: np.ndarray) -> np.ndarray:
     return root_rotation(root)[..., None, :, :] @ rot
+
+
+def pose_to_world(points: np.ndarray, rot: np.ndarray, root: np.ndarray):
+    """:func:`to_world` of ``points`` and :func:`rot_to_world` of ``rot``, sharing ``Ry(θ)``."""
+    R = root_rotation(root)
+    return points @ R.swapaxes(-1, -2) + _origin(root)[..., None, :], R[..., None, :, :] @ rot
 
 
 def root_relative(ref: np.ndarray, root: np.ndarray) -> np.ndarray:
@@ -132,6 +153,12 @@ def root_relative(ref: np.ndarray, root: np.ndarray) -> np.ndarray:
 
 def root_compose(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
     """``ref · rel``: inverse of :func:`root_relative`."""
+    if ref.ndim == 1 and rel.ndim == 1:  # one frame, in plain floats
+        x0, z0, c, s = ref.tolist()
+        r0, r1, cr, sr = rel.tolist()
+        co, so = cr * c - sr * s, sr * c + cr * s
+        n = 1.0 / max(sqrt(co * co + so * so), 1e-300)
+        return np.array([x0 + c * r0 + s * r1, z0 - s * r0 + c * r1, co * n, so * n])
     c, s = ref[..., 2], ref[..., 3]
     x = ref[..., 0] + c * rel[..., 0] + s * rel[..., 1]
     z = ref[..., 1] - s * rel[..., 0] + c * rel[..., 1]
@@ -141,6 +168,37 @@ def root_compose(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
     out = np.empty(x.shape + (4,))
     out[..., 0], out[..., 1] = x, z
     out[..., 2], out[..., 3] = co * n, so * n
+    return out
+
+
+# Component-major ("rows") versions for the per-frame runtime: roots as ``(4, n)``
+# arrays, one contiguous row per component, ``ref`` of the same shape. The
+# arithmetic is exactly that of the functions above; numpy calls on contiguous
+# rows of equal shape cost a fraction of those on strided or broadcast arrays.
+
+_REL_SIGN = np.array([[-1.0], [1.0], [1.0], [-1.0]])
+
+
+def relative_rows(ref: np.ndarray, root: np.ndarray) -> np.ndarray:
+    """:func:`root_relative` on rows ``(4, n)``: with ``u = (dx, dz, cos_r, sin_r)``,
+    ``c·u + s·(dz, dx, sin_r, cos_r)·(−1, 1, 1, −1)`` (the same products and sums)."""
+    u = root.copy()
+    u[:2] -= ref[:2]
+    swapped = u.reshape(2, 2, -1)[:, ::-1].reshape(u.shape)
+    return ref[2] * u + ref[3] * (swapped * _REL_SIGN)
+
+
+def compose_rows(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
+    """:func:`root_compose` on rows ``(4, n)``."""
+    x0, z0, c, s = ref
+    r0, r1, cr, sr = rel
+    out = np.empty(rel.shape)
+    np.add(x0 + c * r0, s * r1, out=out[0])
+    np.add(z0 - s * r0, c * r1, out=out[1])
+    co, so = cr * c - sr * s, sr * c + cr * s
+    n = 1.0 / np.maximum(np.sqrt(co * co + so * so), 1e-300)
+    np.multiply(co, n, out=out[2])
+    np.multiply(so, n, out=out[3])
     return out
 
 
@@ -172,14 +230,21 @@ def rot6d(rot: np.ndarray) -> np.ndarray:
     return np.concatenate([rot[..., :, 0], rot[..., :, 1]], axis=-1)
 
 
+_GS_ROWS = np.array([0, 1, 2, 0, 1, 2, 3, 4, 5, 3, 4, 5])
+
+
 def rot6d_to_matrix(x: np.ndarray) -> np.ndarray:
     """Gram–Schmidt back to rotation matrices: ``(…, 6) -> (…, 3, 3)``."""
-    a, b = x[..., 0:3], x[..., 3:6]
-    out = np.empty(x.shape[:-1] + (3, 3))
-    e1 = a / np.maximum(norm(a), 1e-12)[..., None]
-    b = b - np.einsum("...i,...i->...", e1, b)[..., None] * e1
-    e2 = b / np.maximum(norm(b), 1e-12)[..., None]
-    out[..., :, 0] = e1
-    out[..., :, 1] = e2
-    out[..., :, 2] = cross(e1, e2)
-    return out
+    x = np.asarray(x, dtype=np.float64)
+    lead = x.shape[:-1]
+    # Component-major rows, all frames at once (few numpy calls on contiguous
+    # rows); both input vectors and e1, e2 twice over (x y z x y z), so the
+    # cross product reads them rotated as plain slices. e[k]: column k.
+    a, b = x.reshape(-1, 6).T.take(_GS_ROWS, axis=0).reshape(2, 6, -1)
+    e = np.empty((3, 6, a.shape[1]))
+    e1, e2 = e[0], e[1]
+    np.divide(a, np.maximum(np.sqrt(_dot3(a[:3], a[:3])), 1e-12), out=e1)
+    b = b - _dot3(e1[:3], b[:3]) * e1
+    np.divide(b, np.maximum(np.sqrt(_dot3(b[:3], b[:3])), 1e-12), out=e2)
+    np.subtract(e1[1:4] * e2[2:5], e1[2:5] * e2[1:4], out=e[2, :3])  # e1 × e2
+    return e[:, :3].transpose(2, 1, 0).copy().reshape(lead + (3, 3))

@@ -15,13 +15,14 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass
+from math import sqrt
 
 import numpy as np
 
 from . import features as F
 from .pose import PoseRecovery, bone_vectors_from_pose
-from .representation import (root_compose, root_from_head, root_relative, rot6d_to_matrix, rot_to_local,
-                             rot_to_world, to_local, to_world)
+from .representation import (pose_to_world, root_compose, root_from_head, root_relative, rot6d_to_matrix,
+                             rot_to_local, to_local, to_world)
 from .skeleton import FEET, JOINT_NAMES, TRACKED
 
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
@@ -36,7 +37,7 @@ KIN_HEIGHT, KIN_SPEED, KIN_FLOOR_RISE = 0.035, 1.5, 0.001  # kinematic contacts:
 
 def _quat_matrix(q) -> np.ndarray:
     """One unit quaternion (w, x, y, z) to a rotation matrix (normalised first)."""
-    w, x, y, z = (float(v) for v in q)
+    w, x, y, z = np.asarray(q, dtype=np.float64).tolist()
     n = 2.0 / (w * w + x * x + y * y + z * z)
     return np.array([[1 - n * (y * y + z * z), n * (x * y - w * z), n * (x * z + w * y)],
                      [n * (x * y + w * z), 1 - n * (x * x + z * z), n * (y * z - w * x)],
@@ -53,9 +54,9 @@ def _head_scale(heights) -> float:
 
 def _blend_root(a, b, w):
     """Root ``w`` of the way from ``a`` to ``b`` (position linear, heading normalised)."""
-    out = a + w * (b - a)
-    out[2:] /= max(float(np.hypot(out[2], out[3])), 1e-9)
-    return out
+    x, z, c, s = (p + w * (q - p) for p, q in zip(a.tolist(), b.tolist()))  # 4 numbers: plain floats
+    n = max(float(np.hypot(c, s)), 1e-9)
+    return np.array([x, z, c / n, s / n])
 
 
 class OnnxNet:
@@ -130,22 +131,37 @@ class _Dancer:
         leader's head), used instead of the predicted one so the root cannot drift.
         ``pull = (root, w)``: move the predicted root the share ``w`` of the way to
         ``root`` (a complementary filter: no drift, little jitter)."""
-        x = F.tracking_input(self.pose[None], self.root[None], key_roots[None], key_tracked[None])
-        y = self.net(x).astype(np.float64)
-        rel, pos, rot, con = F.split_tracking_output(y[:, :F.KEY_OUT])
-        root = root_compose(self.root, rel[0, 0]) if observed_root is None else observed_root
-        if pull is not None and pull[1] > 0:
-            root = _blend_root(root, pull[0], pull[1])
-        pos_l, rot_l = pos[0, 0], rot[0, 0]
-        con = np.clip(con[0, 0], 0.0, 1.0)
-        self.root = root
-        self.pose = F.pose_features(pos_l[None], rot_l[None], con[None])[0]
-        return to_world(pos_l, root), rot_to_world(rot_l, root), con
+        pos, rot, con = advance_together((self,), key_roots[None], key_tracked[None], (observed_root,), (pull,))
+        return pos[0], rot[0], con[0]
 
     def set_pose(self, pos_world, rot_world, contacts):
         """Replace the state's pose (world) by a post-processed one."""
         self.pose = F.pose_features(to_local(pos_world[None], self.root[None]),
                                     rot_to_local(rot_world[None], self.root[None]), contacts[None])[0]
+
+
+def advance_together(dancers, key_roots, key_tracked, observed_roots, pulls):
+    """:meth:`_Dancer.advance` of several dancers at once: their networks one
+    after the other, the feature work around them batched over the dancers (at
+    these sizes numpy's cost is per call, not per element). ``key_roots (D, K, 4)``,
+    ``key_tracked (D, K, 3, 3)``; per dancer an observed root (or None) and a pull
+    (or None). Returns world positions ``(D, 31, 3)``, rotations ``(D, 31, 3, 3)``
+    and contacts ``(D, 4)``."""
+    x = F.tracking_input(np.array([d.pose for d in dancers]), np.array([d.root for d in dancers]),
+                         key_roots, key_tracked)
+    y = np.concatenate([d.net(x[i:i + 1]) for i, d in enumerate(dancers)], dtype=np.float64)
+    rel, pos, rot, con = F.split_tracking_output(y[:, :F.KEY_OUT])
+    for d, r, root, pull in zip(dancers, rel[:, 0], observed_roots, pulls):
+        if root is None:
+            root = root_compose(d.root, r)
+        if pull is not None and pull[1] > 0:
+            root = _blend_root(root, pull[0], pull[1])
+        d.root = root
+    pos, rot = pos[:, 0], rot[:, 0]
+    con = np.minimum(np.maximum(con[:, 0], 0.0), 1.0)  # np.clip(con, 0, 1), cheaper
+    for d, pose in zip(dancers, F.pose_features(pos, rot, con)):
+        d.pose = pose
+    return pose_to_world(pos, rot, np.array([d.root for d in dancers])) + (con,)
 
 
 class Synthesizer:
@@ -266,11 +282,11 @@ class Synthesizer:
             root = root_from_head(head_pos, head_rot)
         if valid[0]:
             self.last_valid = (head_pos, head_rot)
-        tracked = np.empty((3, 3))
-        tracked[0] = head_pos
+        tracked = np.array(positions, dtype=np.float64)  # rows of lost devices are replaced below
+        if not valid[0]:
+            tracked[0] = head_pos
         for i in (1, 2):
             if valid[i]:
-                tracked[i] = positions[i]
                 self.last_hand[i - 1] = (tracked[i].copy(), root)
                 continue
             if pred is not None:
@@ -290,19 +306,21 @@ class Synthesizer:
         if valid[0] and self.height == "auto":
             self._head_heights.append(tracked[0, 1])
         s = self.scale()
-        tracked_s = tracked * s
-        root = root * np.array([s, s, 1.0, 1.0])  # scaling about the origin keeps the heading
+        tracked_s = tracked
+        if s != 1.0:  # (×1 changes nothing: skipped)
+            tracked_s = tracked * s
+            root = root * np.array([s, s, 1.0, 1.0])  # scaling about the origin keeps the heading
         if self.t == 0:
             self.hist_roots[:] = root
             self.hist_tracked[:] = tracked_s
             self.leader.place(root)
         else:
-            self.hist_roots[:-1] = self.hist_roots[1:].copy()
-            self.hist_tracked[:-1] = self.hist_tracked[1:].copy()
+            self.hist_roots[:-1] = self.hist_roots[1:]  # (numpy copes with the overlap)
+            self.hist_tracked[:-1] = self.hist_tracked[1:]
             self.hist_roots[-1] = root
             self.hist_tracked[-1] = tracked_s
         y = self.nets["mapping"](F.mapping_input(self.hist_roots[None], self.hist_tracked[None]))
-        (l_roots, l_tr), (f_roots, f_tr) = F.decode_mapping(y.astype(np.float64), root[None])
+        (l_roots, l_tr), (f_roots, f_tr) = F.decode_mapping(y, root[None])
         l_roots, l_tr, f_roots, f_tr = l_roots[0], l_tr[0], f_roots[0], f_tr[0]
         self.prev_leader_pred = (l_roots[0], l_tr[0])
         if self.t == 0:
@@ -312,16 +330,18 @@ class Synthesizer:
         lk_roots, lk_tr = self._leader_keys(root, cur_local, l_roots, l_tr)
         fk_roots, fk_tr = self._follower_keys(f_roots, f_tr, l_roots, l_tr)
         self.prev_follower = (f_roots[0], f_tr[0])
-        lp, lr, lc = self.leader.advance(lk_roots, lk_tr, root if self.anchor_leader else None)
-        fp, fr, fc = self.follower.advance(fk_roots, fk_tr, pull=(fk_roots[0], self.anchor_follower))
-        lp, lr = self._recover(0, lp, lr, lc, tracked_s)
-        fp, fr = self._recover(1, fp, fr, fc, None)
+        pos, rot, (lc, fc) = advance_together(
+            (self.leader, self.follower), np.array([lk_roots, fk_roots]), np.array([lk_tr, fk_tr]),
+            (root if self.anchor_leader else None, None), (None, (fk_roots[0], self.anchor_follower)))
+        lp, lr = self._recover(0, pos[0], rot[0], lc, tracked_s)
+        fp, fr = self._recover(1, pos[1], rot[1], fc, None)
         if self.feedback == "final":  # the next step starts from the pose the user sees
             self.leader.set_pose(lp, lr, lc)
             self.follower.set_pose(fp, fr, fc)
         self.t += 1
-        inv = 1.0 / s
-        return DuetFrame(lp * inv, lr, lc), DuetFrame(fp * inv, fr, fc)
+        if s != 1.0:
+            lp, fp = lp * (1.0 / s), fp * (1.0 / s)
+        return DuetFrame(lp, lr, lc), DuetFrame(fp, fr, fc)
 
     def _recover(self, who, pos, rot, contacts, targets):
         """Pose recovery (Appendix B) of dancer ``who`` (0 leader, 1 follower):
@@ -339,29 +359,36 @@ class Synthesizer:
         low above its floor (the lowest height seen lately, rising 3 cm/s) and slow
         since the last frame counts as planted, whatever the network's contact
         output says."""
-        feet = pos[FEET]
+        feet = pos.take(FEET, axis=0).tolist()  # four points: plain floats cost less than arrays
         prev = self._prev_feet[who]
         self._prev_feet[who] = feet
         floor = self._floor[who]
-        floor = feet[:, 1].copy() if floor is None else np.minimum(floor + KIN_FLOOR_RISE, feet[:, 1])
+        if floor is None:
+            floor = [y for _, y, _ in feet]
+        else:
+            floor = [min(f + KIN_FLOOR_RISE, y) for f, (_, y, _) in zip(floor, feet)]
         self._floor[who] = floor
         if prev is None:
             return np.zeros(4)
-        speed = np.sqrt(((feet - prev)[:, [0, 2]] ** 2).sum(-1)) * F.FPS
-        return ((feet[:, 1] - floor < KIN_HEIGHT) & (speed < KIN_SPEED)).astype(np.float64)
+        out = []
+        for (x, y, z), (px, _, pz), f in zip(feet, prev, floor):
+            dx, dz = x - px, z - pz
+            speed = sqrt(dx * dx + dz * dz) * F.FPS
+            out.append(1.0 if y - f < KIN_HEIGHT and speed < KIN_SPEED else 0.0)
+        return np.array(out)
 
     # mapping index of frame t − 1 + k for the keys k >= 2 (index 0 is frame t + 1)
     _OFF = F.TRACK_KEYS[1:] - 2
 
     def _leader_keys(self, root, cur_local, l_roots, l_tr):
         """Leader's key inputs: the current input frame, then the mapping's prediction."""
-        return (np.concatenate([root[None], l_roots[self._OFF]]),
-                np.concatenate([cur_local[None], l_tr[self._OFF]]))
+        return (np.concatenate([root[None], l_roots.take(self._OFF, axis=0)]),
+                np.concatenate([cur_local[None], l_tr.take(self._OFF, axis=0)]))
 
     def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
         """Follower's key inputs: last step's prediction of frame t, then this step's."""
-        return (np.concatenate([self.prev_follower[0][None], f_roots[self._OFF]]),
-                np.concatenate([self.prev_follower[1][None], f_tr[self._OFF]]))
+        return (np.concatenate([self.prev_follower[0][None], f_roots.take(self._OFF, axis=0)]),
+                np.concatenate([self.prev_follower[1][None], f_tr.take(self._OFF, axis=0)]))
 
     # -- a whole take ----------------------------------------------------------
     def synthesize(self, take, progress=None) -> Duet:
