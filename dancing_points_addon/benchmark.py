@@ -12,7 +12,10 @@ per character-frame = frame time / 2.
 The compute floor is the bare matrix–vector products of the same weights in
 numpy on the same machine (one float32 ``W @ x`` per Linear layer of the three
 networks, no activations; int8 layers dequantised): what the networks'
-arithmetic costs at the least in plain float32.
+arithmetic costs at the least in plain float32. It is timed in blocks between
+the loop's blocks, so both see the same machine (a shared machine's speed
+drifts by 2× within minutes). The command runs numpy's BLAS on one thread
+(``OPENBLAS_NUM_THREADS=1`` … unless set), like onnxruntime.
 """
 from __future__ import annotations
 
@@ -80,27 +83,38 @@ def onnx_weights(path):
     return mats
 
 
+class _Floor:
+    """The bare mat-vec products of all three networks' weights (the mapping
+    once, each tracker once), timed one duet frame at a time."""
+
+    def __init__(self, model_dir):
+        self.chain = [np.ascontiguousarray(w) for f in MODEL_FILES.values()
+                      for w in onnx_weights(os.path.join(model_dir, f))]
+        rng = np.random.default_rng(0)
+        self.xs = [rng.standard_normal(w.shape[1], dtype=np.float32) for w in self.chain]
+        self.macs = sum(w.size for w in self.chain)
+        self.time(10)  # warm up
+
+    def time(self, repeats):
+        times = np.empty(repeats)
+        for r in range(repeats):
+            t = time.perf_counter()
+            for w, x in zip(self.chain, self.xs):
+                w @ x
+            times[r] = time.perf_counter() - t
+        return times
+
+
 def compute_floor(model_dir, repeats=2000):
-    """Seconds per duet frame of the bare mat-vec products of all three networks
-    (the mapping once, each tracker once)."""
-    chain = []
-    for f in MODEL_FILES.values():
-        for w in onnx_weights(os.path.join(model_dir, f)):
-            chain.append(np.ascontiguousarray(w))
-    xs = [np.random.default_rng(0).standard_normal(w.shape[1], dtype=np.float32) for w in chain]
-    for w, x in zip(chain, xs):  # warm up
-        w @ x
-    times = np.empty(repeats)
-    for r in range(repeats):
-        t = time.perf_counter()
-        for w, x in zip(chain, xs):
-            w @ x
-        times[r] = time.perf_counter() - t
-    macs = sum(w.size for w in chain)
-    return float(np.median(times)), macs
+    """Seconds per duet frame (median) of the bare mat-vec products, and the MACs."""
+    f = _Floor(model_dir)
+    return float(np.median(f.time(repeats))), f.macs
 
 
-def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True, hand_ik=True):
+def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True, hand_ik=True, blocks=10):
+    """Time ``frames`` duet frames of the loop and as many passes of the compute
+    floor, interleaved in ``blocks`` (a shared machine's speed drifts: the ratio
+    compares the two under the same conditions)."""
     from .runtime import MODEL_DIR
     from .resample import resample_take
     from .take import read_take
@@ -112,26 +126,36 @@ def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True
     synth = _TimedSynth(nets=nets, foot_lock=foot_lock, hand_ik=hand_ik, clocks=clocks)
     take = resample_take(read_take(take_path))
     valid = take.valid
+    floor = _Floor(model_dir)
     total, net_t, rec_t = (np.empty(frames) for _ in range(3))
+    floor_t = []
     warm = 60
-    for i in range(frames + warm):
-        k = i % take.n_frames
-        if k == 0:
-            synth.reset()
-        clocks["networks"][0] = clocks["recovery"][0] = 0.0
-        t = time.perf_counter()
-        synth.step(take.positions[k], take.quats[k], valid[k])
-        dt = time.perf_counter() - t
-        if i >= warm:
-            total[i - warm], net_t[i - warm], rec_t[i - warm] = dt, clocks["networks"][0], clocks["recovery"][0]
-    floor, macs = compute_floor(model_dir)
+    k = -1
+    per_block = -(-frames // max(1, int(blocks)))
+    i = -warm
+    while i < frames:
+        end = min(i + per_block, frames) if i >= 0 else 0
+        while i < end:
+            k = (k + 1) % take.n_frames
+            if k == 0:
+                synth.reset()
+            clocks["networks"][0] = clocks["recovery"][0] = 0.0
+            t = time.perf_counter()
+            synth.step(take.positions[k], take.quats[k], valid[k])
+            dt = time.perf_counter() - t
+            if i >= 0:
+                total[i], net_t[i], rec_t[i] = dt, clocks["networks"][0], clocks["recovery"][0]
+            i += 1
+        if i > 0:
+            floor_t.append(floor.time(per_block))
+    floor_s = float(np.median(np.concatenate(floor_t)))
     per = {name: arr / 2.0 * 1000.0 for name, arr in
            (("total", total), ("networks", net_t), ("recovery", rec_t), ("features", total - net_t - rec_t))}
     return {"frames": frames, "threads": threads,
             "median_ms": {k: float(np.median(v)) for k, v in per.items()},
             "p99_ms": {k: float(np.percentile(v, 99)) for k, v in per.items()},
-            "floor_ms": floor / 2.0 * 1000.0, "macs_per_frame": macs,
-            "ratio_to_floor": float(np.median(per["total"]) / (floor / 2.0 * 1000.0))}
+            "floor_ms": floor_s / 2.0 * 1000.0, "macs_per_frame": floor.macs,
+            "ratio_to_floor": float(np.median(per["total"]) / (floor_s / 2.0 * 1000.0))}
 
 
 def report(res) -> str:
@@ -140,7 +164,8 @@ def report(res) -> str:
              f"  {'':12s} {'median':>9s} {'p99':>9s}"]
     for k in ("total", "features", "networks", "recovery"):
         lines.append(f"  {k:12s} {res['median_ms'][k]:8.3f}ms {res['p99_ms'][k]:8.3f}ms")
-    lines.append(f"  compute floor (bare numpy mat-vec of the same weights, {res['macs_per_frame'] / 1e6:.2f} M "
-                 f"MACs per duet frame): {res['floor_ms']:.3f} ms per character-frame")
+    lines.append(f"  compute floor (bare numpy float32 mat-vec of the same weights, one thread, "
+                 f"{res['macs_per_frame'] / 1e6:.2f} M MACs per duet frame, timed between the loop's blocks): "
+                 f"{res['floor_ms']:.3f} ms per character-frame")
     lines.append(f"  ratio total / floor: {res['ratio_to_floor']:.1f}x")
     return "\n".join(lines)

@@ -75,8 +75,23 @@ class OnnxNet:
         self.meta = dict(self.session.get_modelmeta().custom_metadata_map)
         self.input = self.session.get_inputs()[0].name
         self.output = self.session.get_outputs()[0].name
+        # batch 1 (the frame loop): preallocated, bound input and output buffers
+        # (io binding skips the per-call feed/fetch conversions, ~10 µs a run)
+        n_in, n_out = self.session.get_inputs()[0].shape[1], self.session.get_outputs()[0].shape[1]
+        self._one = None
+        if isinstance(n_in, int) and isinstance(n_out, int):
+            self._x1 = np.zeros((1, n_in), dtype=np.float32)
+            self._y1 = np.zeros((1, n_out), dtype=np.float32)
+            self._one = self.session.io_binding()
+            self._one.bind_ortvalue_input(self.input, ort.OrtValue.ortvalue_from_numpy(self._x1))
+            self._one.bind_ortvalue_output(self.output, ort.OrtValue.ortvalue_from_numpy(self._y1))
+            self._run_options = ort.RunOptions()
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
+        if self._one is not None and x.shape == self._x1.shape:
+            self._x1[...] = x
+            self.session.run_with_iobinding(self._one, self._run_options)
+            return self._y1.copy()
         return self.session.run([self.output], {self.input: np.ascontiguousarray(x, dtype=np.float32)})[0]
 
 
