@@ -23,6 +23,7 @@ from .skeleton import MIRROR
 SALSA_TAKES = tuple(f"{i:02d}" for i in range(1, 14))
 LEADER, FOLLOWER = "60", "61"
 TRAIN_SHARE = 0.8
+FIT_SHARE = 0.8  # of the train frames: "fit" then "val", for choosing a recipe without the test frames
 CACHE_VERSION = 2
 
 
@@ -31,13 +32,18 @@ def n_train_frames(n30: int) -> int:
 
 
 def split_range(n60: int, split: str) -> tuple[int, int]:
-    """30 Hz frame range ``[a, b)`` of a split for a take with ``n60`` frames."""
+    """30 Hz frame range ``[a, b)`` of a split for a take with ``n60`` frames:
+    "train" and "test" (SPEC §5), and the train frames cut in two, "fit" (the
+    first 80 %) and "val" (the rest), to choose a recipe without the test frames."""
     n30 = (n60 + 1) // 2
     k = n_train_frames(n30)
     if split == "train":
         return 0, k
     if split == "test":
         return k, n30
+    if split in ("fit", "val"):
+        f = int(np.floor(FIT_SHARE * k))
+        return (0, f) if split == "fit" else (f, k)
     raise ValueError(f"unknown split {split!r}")
 
 
@@ -97,7 +103,7 @@ def build_clips(data_dir, split: str = "train", mirror_aug: bool = True, solo_di
         if mirror_aug:
             clips.append(Clip(take + "m", Dancer.from_arrays(*mirror(lp, lr)),
                               Dancer.from_arrays(*mirror(fp, fr)), True))
-    if solo_dir is not None and split == "train":
+    if solo_dir is not None and split in ("train", "fit"):
         for f in sorted(os.listdir(solo_dir)):
             if f.endswith(".amc"):
                 m = load_amc(os.path.join(solo_dir, f)).subsample(4)

@@ -81,3 +81,14 @@ def test_training_samples_stay_inside_train_frames(salsa_dir, clips):
     assert len(x) == sum(c.n_frames - F.FUTURE for c in clips)
     xt, yt, _ = tracking_samples(clips, "follower")
     assert len(xt) == len(x) and xt.shape[1] == F.TRACK_IN and yt.shape[1] == F.TRACK_OUT
+
+
+def test_fit_and_val_cut_the_train_frames_only():
+    """The recipe-selection splits: "fit" then "val" tile exactly the train frames
+    of every take, so choosing a recipe on "val" never touches a test frame."""
+    for n60 in (2242, 2101, 1197, 3421, 1):
+        a, b = split_range(n60, "train")
+        fa, fb = split_range(n60, "fit")
+        va, vb = split_range(n60, "val")
+        assert (fa, fb, vb) == (a, va, b) and fa <= fb <= vb
+        assert vb <= split_range(n60, "test")[0]

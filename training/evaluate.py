@@ -239,8 +239,9 @@ def main(argv=None):
     ap.add_argument("--ablations", default=None, help="folder with vanilla_*.onnx and pastinput_*.onnx")
     ap.add_argument("--takes", default=None, help="comma list of take numbers (default: all 13)")
     ap.add_argument("--no-foot-lock", action="store_true")
-    ap.add_argument("--split", choices=("test", "train"), default="test",
-                    help="train: score the train frames (for tuning runtime settings; the reported table is test)")
+    ap.add_argument("--split", choices=("test", "train", "val"), default="test",
+                    help="train / val: score the train frames or their last 20 %% (for choosing settings "
+                         "and recipes; the reported table is test)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
     args = ap.parse_args(argv)

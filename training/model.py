@@ -137,9 +137,9 @@ class _Net(nn.Module):
 class MappingNet(_Net):
     """Leader's past 0.5 s of three points -> both dancers' future 1 s."""
 
-    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1):
+    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, dropout=0.1):
         super().__init__(n_in, n_out, noise)
-        self.net = mlp(n_in, n_out, hidden, layers)
+        self.net = mlp(n_in, n_out, hidden, layers, dropout)
 
     def _loss(self, xn, yn):
         return {"rec": ((self.net(xn) - yn) ** 2).mean()}
