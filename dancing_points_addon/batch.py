@@ -127,7 +127,7 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
                    help="leave the leader's head and wrists where the network puts them (no IK onto the input)")
     p.add_argument("--leader-rig", default=None, metavar="FILE",
                    help="also retarget the leader onto the armature of this .blend, .glb/.gltf or .fbx file "
-                        "(formats blend and fbx, --render)")
+                        "(formats blend and fbx, --render; a file without an armature fails each take)")
     p.add_argument("--follower-rig", default=None, metavar="FILE",
                    help="the same for the follower")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (result lines only)")

@@ -69,6 +69,8 @@ def onnx_weights(path):
     for n in m.graph.node:
         if n.op_type == "MatMulNBits":
             a = {x.name: helper.get_attribute_value(x) for x in n.attribute}
+            if a.get("bits", 4) != 8 or (len(n.input) > 3 and n.input[3]):
+                raise ValueError(f"{path}: {n.name}: only symmetric 8-bit MatMulNBits layers are read")
             N, K, bs = a["N"], a["K"], a["block_size"]
             q = inits[n.input[1]].reshape(N, -1, bs).astype(np.float32)
             scale = inits[n.input[2]].reshape(N, -1, 1).astype(np.float32)

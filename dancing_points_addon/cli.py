@@ -42,6 +42,16 @@ def positive_float(text: str) -> float:
     return v
 
 
+def positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
+    return v
+
+
 def height_metres(text: str) -> float:
     v = positive_float(text)
     if not 0.5 <= v <= 3.0:
@@ -154,7 +164,7 @@ def _parser_synthesize(sub) -> None:
                                    "and OUT_follower.bvh on the CMU skeleton (Y up, metres).")
     add_input_arguments(p)
     p.add_argument("-o", "--output", required=True, metavar="OUT.npz|OUT.bvh", help="output file")
-    p.add_argument("--threads", type=int, default=1, metavar="N", help="onnxruntime threads (default 1)")
+    p.add_argument("--threads", type=positive_int, default=1, metavar="N", help="onnxruntime threads (default 1)")
     p.add_argument("--models", default=None, metavar="DIR", help="folder with the ONNX models")
     p.add_argument("--no-foot-lock", action="store_true", help="turn contact-based foot locking off")
     p.add_argument("--no-hand-ik", action="store_true",
@@ -178,8 +188,8 @@ def _parser_benchmark(sub) -> None:
                        description="Time the frame-by-frame loop on the embedded sample take (batch 1): "
                                    "median and p99 per character-frame, split into features, networks "
                                    "and pose recovery, beside the compute floor of the same weights.")
-    p.add_argument("--frames", type=int, default=2000, metavar="N", help="timed duet frames (default 2000)")
-    p.add_argument("--threads", type=int, default=1, metavar="N", help="onnxruntime threads (default 1)")
+    p.add_argument("--frames", type=positive_int, default=2000, metavar="N", help="timed duet frames (default 2000)")
+    p.add_argument("--threads", type=positive_int, default=1, metavar="N", help="onnxruntime threads (default 1)")
     p.add_argument("--models", default=None, metavar="DIR", help="folder with the ONNX models")
     p.add_argument("--no-foot-lock", action="store_true")
     p.add_argument("--no-hand-ik", action="store_true")

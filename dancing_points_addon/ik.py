@@ -372,7 +372,7 @@ class FootLocker:
     planted height (k frames since the release; ``step_height`` grows with the
     distance to travel: ``clamp(step_scale · d, step_height, step_max)``), so
     the foot leaves the floor on the first frame and lands on the last,
-    instead of skating along it.
+    instead of skating along it; no point locks while the step is in the air.
     A lock whose predicted point drifts farther than ``max_drift`` (m) from it
     is released; that point can lock again when its contact probability has
     fallen below ``off`` or the release blend is over.
@@ -480,8 +480,10 @@ class FootLocker:
             elif (b[0] - lb[0]) ** 2 + (b[1] - lb[1]) ** 2 + (b[2] - lb[2]) ** 2 > md2:
                 new_b = None
                 st.armed_b = False
-        engage_a = new_a is None and st.on_a and st.armed_a
-        engage_b = new_b is None and st.on_b and st.armed_b
+        # no new lock while a catch-up step is in the air: the foot lands first
+        stepping = la is None and lb is None and st.lift is not None and st.k < N
+        engage_a = new_a is None and st.on_a and st.armed_a and not stepping
+        engage_b = new_b is None and st.on_b and st.armed_b and not stepping
         free_old = la is None and lb is None
         if free_old and st.k >= N and not (engage_a or engage_b):
             return None  # free and settled: the prediction passes through
@@ -513,6 +515,8 @@ class FootLocker:
                 bx, by, bz = T_old[0] + s * F_old[0], T_old[1] + s * F_old[1], T_old[2] + s * F_old[2]
                 new_b = (bx, by if fb is None else min(by, fb), bz)
             st.lock_a, st.lock_b = new_a, new_b
+            if new_a is not None or new_b is not None:
+                st.lift = None
             st.k = 0
             if new_a is None and new_b is None:
                 # full release: the old mode's IK on this frame (so the output

@@ -77,7 +77,7 @@ class PoseRecovery:
         n = np.sqrt(_dot3(d, d))
         rot_dir = np.ascontiguousarray((rotations @ self._rest_col)[:, :, 0].T)
         dirs = d / np.maximum(n, 1e-12)
-        if n[1:].min() <= 1e-6:  # a collapsed bone (rare): its rotation's direction
+        if not n[1:].min() > 1e-6:  # a collapsed (or NaN) bone, rare: its rotation's direction
             dirs = np.where(n > 1e-6, dirs, rot_dir)
         dirs[:, 0] = 0.0
         out_pos = positions[:1] + ANCESTORS @ (dirs * self.lengths).T

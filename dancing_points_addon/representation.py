@@ -87,7 +87,7 @@ def root_from_motion(positions: np.ndarray, rotations: np.ndarray) -> np.ndarray
 
 def root_rotation(root: np.ndarray) -> np.ndarray:
     """``Ry(θ)`` matrices ``(…, 3, 3)``."""
-    if root.ndim <= 2 and root.size <= 16:  # a few frames: a literal costs less than seven array writes
+    if root.ndim <= 2 and 0 < root.size <= 16:  # a few frames: a literal costs less than seven array writes
         out = [[[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]] for _, _, c, s in root.reshape(-1, 4).tolist()]
         return np.array(out if root.ndim == 2 else out[0], dtype=root.dtype)
     c, s = root[..., 2], root[..., 3]
@@ -101,7 +101,7 @@ def root_rotation(root: np.ndarray) -> np.ndarray:
 
 
 def _origin(root):
-    if root.ndim <= 2 and root.size <= 16:
+    if root.ndim <= 2 and 0 < root.size <= 16:
         out = [[x, 0.0, z] for x, z, _, _ in root.reshape(-1, 4).tolist()]
         return np.array(out if root.ndim == 2 else out[0], dtype=root.dtype)
     o = np.zeros(root.shape[:-1] + (3,), dtype=root.dtype)

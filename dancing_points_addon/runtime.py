@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 from dataclasses import dataclass
 from math import sqrt
 
@@ -86,12 +87,18 @@ class OnnxNet:
             self._one.bind_ortvalue_input(self.input, ort.OrtValue.ortvalue_from_numpy(self._x1))
             self._one.bind_ortvalue_output(self.output, ort.OrtValue.ortvalue_from_numpy(self._y1))
             self._run_options = ort.RunOptions()
+            self._lock = threading.Lock()
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        if self._one is not None and x.shape == self._x1.shape:
-            self._x1[...] = x
-            self.session.run_with_iobinding(self._one, self._run_options)
-            return self._y1.copy()
+        # the bound buffers serve one caller at a time (the add-on may run two
+        # syntheses on threads with the same nets): the other takes session.run
+        if self._one is not None and x.shape == self._x1.shape and self._lock.acquire(blocking=False):
+            try:
+                self._x1[...] = x
+                self.session.run_with_iobinding(self._one, self._run_options)
+                return self._y1.copy()
+            finally:
+                self._lock.release()
         return self.session.run([self.output], {self.input: np.ascontiguousarray(x, dtype=np.float32)})[0]
 
 

@@ -394,3 +394,30 @@ def test_foot_locker_drift_release_is_a_step_not_a_slide(take):
     print(f"\ndrifting foot: {len(released)} release(s); horizontal speed on low frame pairs "
           f"{speed[pairs].mean() * 100:.2f} cm/s (prediction: 30 cm/s)")
     assert speed[pairs].mean() < 0.25 * 0.30  # the slide itself is 30 cm/s
+
+
+def test_foot_locker_relock_during_a_step_lands_smoothly(take):
+    """A contact that comes on in the middle of a catch-up step waits for the
+    landing: the step completes (no drop from the lifted height, never below
+    where the foot was planted), then the point locks where the foot landed."""
+    gt, rot, _ = take
+    T = 60
+    P = np.repeat(gt[100:101], T, axis=0)
+    R = np.repeat(rot[100:101], T, axis=0)
+    leg = [J["ltibia"], J["lfoot"], J["ltoes"]]
+    P[:, leg] += np.linspace(0, 0.6, T)[:, None, None] * [1.0, 0, 0]
+    C = np.zeros((T, 4))
+    C[:, 0] = 0.9
+    first = _run_locker(FootLocker(), P, R, C)[2]
+    rel = next(t for t in range(1, T) if first[t - 1][0][0] is not None and first[t][0][0] is None)
+    C[rel + 3:, 1] = 0.9  # the ball contact comes on three frames into the step
+    out, _, locks = _run_locker(FootLocker(), P, R, C)
+    ankle = J["ltibia"]
+    plant = out[rel - 1, ankle, 1]
+    y = out[rel - 1:rel + 12, ankle, 1] - plant
+    print("\nankle height over the step and re-lock (cm): " + " ".join(f"{v * 100:.1f}" for v in y))
+    N = FootLocker().blend_frames
+    ball_locked = [t for t in range(rel, T) if locks[t][0][1] is not None]
+    assert ball_locked and ball_locked[0] == rel + N  # not in the air: on landing
+    assert y.min() > -1e-3 and np.abs(np.diff(y)).max() < 0.03
+    assert abs(out[rel + N + 2, ankle, 1] - P[rel + N + 2, ankle, 1]) < 1e-3  # landed on the prediction

@@ -47,7 +47,7 @@ def git_commit() -> str:
 
 def gemm_to_matmul(m: onnx.ModelProto) -> onnx.ModelProto:
     """Rewrite every ``Gemm`` (alpha = beta = 1, transA = 0) as ``MatMul`` + ``Add``
-    with the weight stored input-major: the form the weight-only quantiser reads."""
+    with the weight stored input-major: the form the MatMulNBits quantiser reads."""
     from onnx import helper, numpy_helper
 
     inits = {i.name: i for i in m.graph.initializer}
@@ -75,9 +75,10 @@ def gemm_to_matmul(m: onnx.ModelProto) -> onnx.ModelProto:
 
 
 def quantize_int8(m: onnx.ModelProto) -> onnx.ModelProto:
-    """Weight-only int8 quantisation of every Linear layer: symmetric, one scale
-    per block of ``INT8_BLOCK`` input weights (onnxruntime's ``MatMulNBits``,
-    accuracy level 4). At batch 1 the networks are memory-bound: a quarter of
+    """int8 quantisation of every Linear layer's weights: symmetric, one scale
+    per block of ``INT8_BLOCK`` input weights (onnxruntime's ``MatMulNBits``;
+    accuracy level 4 also quantises the layer input per block at run time and
+    multiplies in int8). At batch 1 the networks are memory-bound: a quarter of
     the weight bytes nearly halves their run time in the frame loop, and the
     closed-loop figures stay within noise of float32 (models/README.md)."""
     import logging
@@ -94,7 +95,7 @@ def quantize_int8(m: onnx.ModelProto) -> onnx.ModelProto:
 def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None = None,
            weights: str = "int8"):
     """Write ``model`` (eval mode, CPU) as ONNX at ``path`` atomically; ``weights``:
-    "int8" (weight-only quantised, what ships) or "fp32" (the exact graph)."""
+    "int8" (quantised weights, int8 compute: what ships) or "fp32" (the exact graph)."""
     if weights not in WEIGHTS:
         raise ValueError(f"weights must be one of {WEIGHTS}")
     keep = tracker_keep() if kind.startswith("tracker") else mapping_keep()
@@ -119,7 +120,7 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
                       "mirror augmented",
         "git_commit": git_commit(),
         "weights": "float32" if weights == "fp32" else
-                   f"int8 weight-only, symmetric, blocks of {INT8_BLOCK} (MatMulNBits, accuracy level 4)",
+                   f"int8, symmetric, blocks of {INT8_BLOCK} (MatMulNBits, accuracy level 4: int8 compute)",
     }
     meta.update({k: (v if isinstance(v, str) else json.dumps(v)) for k, v in (extra or {}).items()})
     del m.metadata_props[:]
@@ -143,7 +144,7 @@ def main(argv=None):
     ap.add_argument("--names", default="mapping,tracker_leader,tracker_follower",
                     help="checkpoints to export (e.g. vanilla_leader,pastinput_follower for the ablations)")
     ap.add_argument("--weights", choices=WEIGHTS, default="int8",
-                    help="int8: weight-only quantised (shipped); fp32: the exact float graph")
+                    help="int8: quantised weights, int8 compute (shipped); fp32: the exact float graph")
     ap.add_argument("--default-pose-from", default=None, metavar="DATA",
                     help="recompute the trackers' start-up pose from this data's unmirrored train split")
     args = ap.parse_args(argv)

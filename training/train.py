@@ -117,8 +117,12 @@ def main(argv=None):
     ap.add_argument("--map-dropout", type=float, default=None, help="mapping dropout (default 0.1)")
     ap.add_argument("--map-epochs", type=int, default=None)
     ap.add_argument("--weights", choices=("int8", "fp32"), default="int8",
-                    help="exported weights: int8 weight-only quantised (shipped) or float32")
+                    help="exported weights: int8 (quantised, shipped) or float32")
     args = ap.parse_args(argv)
+    if args.split == "fit" and (os.path.abspath(args.out) == os.path.abspath("models")
+                                or os.path.abspath(args.cache) == os.path.abspath("cache")):
+        ap.error("--split fit trains comparison models: give an --out and a --cache of their own "
+                 "(not the shipped models/ and cache/)")
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -130,7 +134,10 @@ def main(argv=None):
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
     only = set(args.only.split(",")) if args.only else {"mapping", "leader", "follower", "vanilla", "pastinput"}
-    report = {"config": args.config, **cfg, "device": device, "models": {}}
+    report = {"config": args.config, **cfg, "device": device, "split": args.split, "models": {}}
+    split_meta = {} if args.split == "train" else {
+        "data_split": "CMU salsa takes 01-13 at 30 Hz, the first 80% of each take's train frames "
+                      "(split 'fit', for comparing recipes); mirror augmented"}
 
     if "mapping" in only:
         x, y = mapping_samples(clips)
@@ -142,8 +149,9 @@ def main(argv=None):
         info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed)
         info.update(noise=noise, dropout=dropout)
         export(m, "mapping", os.path.join(args.out, "mapping.onnx"), F.MAP_IN,
-               {"hidden": cfg["map_hidden"], "train": info}, weights=args.weights)
-        save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": cfg["map_hidden"]})
+               {"hidden": cfg["map_hidden"], "train": info, **split_meta}, weights=args.weights)
+        save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"),
+                        {"hidden": cfg["map_hidden"], **split_meta})
         report["models"]["mapping"] = info
     mapping_fn = None
     if cfg["runtime_keys"] and only & {"leader", "follower", "vanilla"}:
@@ -177,7 +185,7 @@ def main(argv=None):
             x2, y2 = np.concatenate([x, xr]), np.concatenate([y, y[idx]])
             info2 = train_model(m, x2, y2, cfg["rollout_epochs"], device=device, log=log, seed=args.seed + 1)
             info.update(stage2=info2, seconds=info1["seconds"] + info2["seconds"])
-        meta = {"hidden": cfg["track_hidden"], "role": role, "train": info,
+        meta = {"hidden": cfg["track_hidden"], "role": role, "train": info, **split_meta,
                 "default_pose": default_pose(x, where, clips)}
         meta.update(extra or {})
         export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta, weights=args.weights)
