@@ -73,16 +73,6 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the checko
 
 # =========================================================================== arguments
 
-def _positive_int(text):
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
-    return v
-
-
 def default_jobs() -> int:
     try:
         return max(1, len(os.sched_getaffinity(0)))
@@ -92,7 +82,7 @@ def default_jobs() -> int:
 
 def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> None:
     """The batch options (shared by the ``batch`` subcommand and Blender's ``convert``)."""
-    from .cli import height_metres, positive_float
+    from .cli import height_metres, positive_float, positive_int
 
     p.add_argument("inputs", nargs="+", metavar="IN",
                    help="take files (.csv), BVH (.bvh) or CMU AMC (.amc) files, or folders searched "
@@ -103,7 +93,7 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
                    help=f"output format (default {default_format}): npz = SPEC §4 arrays, bvh = "
                         "NAME_leader.bvh + NAME_follower.bvh, blend = a scene with the baked duet, "
                         "fbx = the two skinned armatures with their animation")
-    p.add_argument("-j", "--jobs", type=_positive_int, default=None, metavar="N",
+    p.add_argument("-j", "--jobs", type=positive_int, default=None, metavar="N",
                    help=f"worker processes (default: the number of cores, {default_jobs()} here)")
     p.add_argument("--render", action="store_true",
                    help="also render a Workbench preview video NAME.mp4 (needs Blender's bpy)")
@@ -114,7 +104,7 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
                    help=f"JSON report (default: OUT_DIR/{REPORT_NAME})")
     p.add_argument("--models", default=None, metavar="DIR",
                    help=f"folder with the ONNX models (default: ${MODEL_ENV}, else the bundled models/)")
-    p.add_argument("--threads", type=_positive_int, default=1, metavar="N",
+    p.add_argument("--threads", type=positive_int, default=1, metavar="N",
                    help="onnxruntime threads per worker (default 1)")
     p.add_argument("--input-fps", type=positive_float, default=None, metavar="F",
                    help="override every input's frame rate")

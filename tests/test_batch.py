@@ -96,9 +96,25 @@ def leftovers(folder):
     return bad
 
 
+_PRELUDE = """
+def action_fcurves(act):
+    # an action's F-Curves: legacy action.fcurves, or the channelbags of a slotted action
+    if act is None:
+        return []
+    fcs = list(getattr(act, "fcurves", []) or [])
+    if not fcs:
+        for layer in act.layers:
+            for strip in layer.strips:
+                for bag in strip.channelbags:
+                    fcs.extend(bag.fcurves)
+    return fcs
+"""
+
+
 def run_bpy_script(code, timeout=600):
-    """Run ``code`` in a fresh Python with bpy; it prints ``RESULT <json>``."""
-    res = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=ROOT, capture_output=True,
+    """Run ``code`` in a fresh Python with bpy (``action_fcurves(action)`` defined);
+    it prints ``RESULT <json>``."""
+    res = subprocess.run([sys.executable, "-c", _PRELUDE + textwrap.dedent(code)], cwd=ROOT, capture_output=True,
                          text=True, timeout=timeout)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     found = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
@@ -276,13 +292,7 @@ def test_blend_fbx(takes, converted, fmt):
                     act = o.animation_data.action if o.animation_data else None
                     keys = 0
                     if act is not None:
-                        fcs = list(getattr(act, "fcurves", []) or [])
-                        if not fcs:
-                            for layer in act.layers:
-                                for strip in layer.strips:
-                                    for bag in strip.channelbags:
-                                        fcs.extend(bag.fcurves)
-                        keys = max(len(fc.keyframe_points) for fc in fcs)
+                        keys = max(len(fc.keyframe_points) for fc in action_fcurves(act))
                     arms[o.name] = [len(o.data.bones), keys]
             meshes = sorted(o.name for o in bpy.data.objects if o.type == 'MESH')
             res[rel] = [arms, meshes, [c.name for c in bpy.data.collections]]
@@ -333,15 +343,7 @@ def test_rigs_get_the_duet(tmp_path, salsa_dir):
         for o in bpy.data.objects:
             if o.type != 'ARMATURE':
                 continue
-            act = o.animation_data.action if o.animation_data else None
-            fcs = []
-            if act is not None:
-                fcs = list(getattr(act, "fcurves", []) or [])
-                if not fcs:
-                    for layer in act.layers:
-                        for strip in layer.strips:
-                            for bag in strip.channelbags:
-                                fcs.extend(bag.fcurves)
+            fcs = action_fcurves(o.animation_data.action if o.animation_data else None)
             keys = sorted({{int(round(k.co[0])) for fc in fcs for k in fc.keyframe_points}})
             skinned = [m.name for m in bpy.data.objects if m.type == 'MESH' and
                        any(md.type == 'ARMATURE' and md.object == o for md in m.modifiers)]
