@@ -162,7 +162,8 @@ def main(argv=None):
         else:
             role = meta.get("role") or name.rsplit("_", 1)[1]
             cls = VanillaTracker if meta.get("ablation") == "a" else TrackingNet
-            m, n_in, kind = cls(F.TRACK_IN, F.TRACK_OUT, meta["hidden"], pose_dim=F.POSE_DIM), F.TRACK_IN, \
+            kw = {"decoder_input": meta["decoder_input"]} if "decoder_input" in meta else {}
+            m, n_in, kind = cls(F.TRACK_IN, F.TRACK_OUT, meta["hidden"], pose_dim=F.POSE_DIM, **kw), F.TRACK_IN, \
                 f"tracker_{role}"
             meta["role"] = role
             if args.default_pose_from:

@@ -165,13 +165,17 @@ class TrackingNet(_Net):
     """
 
     def __init__(self, n_in, n_out, hidden, layers=6, channels=16, width=32, noise=0.1, pose_dim=None,
-                 pose_noise=0.0):
+                 pose_noise=0.0, decoder_input=True):
         super().__init__(n_in, n_out, noise, pose_dim, pose_noise)
         self.channels, self.width = channels, width
+        self.decoder_input = bool(decoder_input)  # False: the paper's decoder, fed the latent alone
         z = channels * width
         self.estimator = mlp(n_in, z, hidden, layers)
         self.encoder = mlp(n_in + n_out, z, hidden, layers)
-        self.decoder = mlp(z + n_in, n_out, hidden, layers)
+        self.decoder = mlp(z + (n_in if self.decoder_input else 0), n_out, hidden, layers)
+
+    def _decode(self, z, xn):
+        return self.decoder(torch.cat([z, xn], dim=-1) if self.decoder_input else z)
 
     def _latent(self, h):
         return torch.softmax(h.view(-1, self.channels, self.width), dim=-1).view(-1, self.channels * self.width)
@@ -179,12 +183,12 @@ class TrackingNet(_Net):
     def _loss(self, xn, yn):
         z_e = self._latent(self.encoder(torch.cat([xn, yn], dim=-1)))
         z_s = self._latent(self.estimator(xn))
-        rec = ((self.decoder(torch.cat([z_e, xn], dim=-1)) - yn) ** 2).mean()
+        rec = ((self._decode(z_e, xn) - yn) ** 2).mean()
         match = ((z_e - z_s) ** 2).sum(-1).mean()
         return {"rec": rec, "match": match}
 
     def _predict(self, xn):
-        return self.decoder(torch.cat([self._latent(self.estimator(xn)), xn], dim=-1))
+        return self._decode(self._latent(self.estimator(xn)), xn)
 
     def output_layer(self):
         return self.decoder[-1]

@@ -116,6 +116,8 @@ def main(argv=None):
     ap.add_argument("--map-noise", type=float, default=None, help="mapping input noise (default 0.1)")
     ap.add_argument("--map-dropout", type=float, default=None, help="mapping dropout (default 0.1)")
     ap.add_argument("--map-epochs", type=int, default=None)
+    ap.add_argument("--paper-decoder", action="store_true",
+                    help="trackers' decoder fed the latent alone (the paper's), not the latent and the input")
     ap.add_argument("--weights", choices=("int8", "fp32"), default="int8",
                     help="exported weights: int8 (quantised, shipped) or float32")
     args = ap.parse_args(argv)
@@ -165,7 +167,9 @@ def main(argv=None):
         keys_fn = mapping_fn if cfg["runtime_keys"] and not past_input else None
         x, y, where = tracking_samples(clips, role, past_input=past_input, mapping_fn=keys_fn)
         log(f"{name}: {x.shape} -> {y.shape}")
-        m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=cfg["pose_noise"])
+        kw = {"decoder_input": False} if args.paper_decoder and cls is TrackingNet else {}
+        m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=cfg["pose_noise"],
+                **kw)
         info1 = train_model(m, x, y, cfg["track_epochs"], device=device, log=log, seed=args.seed)
         info = {"stage1": info1, "seconds": info1["seconds"]}
         if cfg["rollout_epochs"]:
@@ -185,7 +189,7 @@ def main(argv=None):
             x2, y2 = np.concatenate([x, xr]), np.concatenate([y, y[idx]])
             info2 = train_model(m, x2, y2, cfg["rollout_epochs"], device=device, log=log, seed=args.seed + 1)
             info.update(stage2=info2, seconds=info1["seconds"] + info2["seconds"])
-        meta = {"hidden": cfg["track_hidden"], "role": role, "train": info, **split_meta,
+        meta = {"hidden": cfg["track_hidden"], "role": role, "train": info, **split_meta, **kw,
                 "default_pose": default_pose(x, where, clips)}
         meta.update(extra or {})
         export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta, weights=args.weights)
