@@ -206,51 +206,35 @@ def decode_triangles(data: bytes, count: int) -> np.ndarray:
             edge_a[eo], edge_b[eo] = a, c
             eo = (eo + 1) & 15
         else:
-            if ct < 0xFE:
-                ca = aux[ct & 15]
-                feb, fec = ca >> 4, ca & 15
-                a = nxt
-                nxt += 1
-                if feb == 0:
-                    b = nxt
-                    nxt += 1
-                else:
-                    b = vfifo[(vo - feb) & 15]
-                if fec == 0:
-                    c = nxt
-                    nxt += 1
-                else:
-                    c = vfifo[(vo - fec) & 15]
-                vfifo[vo] = a
-                vo = (vo + 1) & 15
-                if feb == 0:
-                    vfifo[vo] = b
-                    vo = (vo + 1) & 15
-                if fec == 0:
-                    vfifo[vo] = c
-                    vo = (vo + 1) & 15
-            else:
+            # a triangle of three vertices, each new (the next index), from the
+            # vertex FIFO, or (0xFE/0xFF codes only, nibble 15) an explicit index
+            explicit = ct >= 0xFE
+            if explicit:
                 ca = raw[dp]
                 dp += 1
                 fea = 0 if ct == 0xFE else 15
-                feb, fec = ca >> 4, ca & 15
                 if ca == 0:
                     nxt = 0
-                if fea == 0:
-                    a = nxt
-                    nxt += 1
-                else:
-                    a = 0
-                if feb == 0:
-                    b = nxt
-                    nxt += 1
-                else:
-                    b = vfifo[(vo - feb) & 15]
-                if fec == 0:
-                    c = nxt
-                    nxt += 1
-                else:
-                    c = vfifo[(vo - fec) & 15]
+            else:
+                ca = aux[ct & 15]
+                fea = 0
+            feb, fec = ca >> 4, ca & 15
+            if fea == 0:
+                a = nxt
+                nxt += 1
+            else:
+                a = 0
+            if feb == 0:
+                b = nxt
+                nxt += 1
+            else:
+                b = vfifo[(vo - feb) & 15]
+            if fec == 0:
+                c = nxt
+                nxt += 1
+            else:
+                c = vfifo[(vo - fec) & 15]
+            if explicit:
                 if fea == 15:
                     v, dp = _vbyte(raw, dp)
                     last = a = (last + _unzig32(v)) & M
@@ -260,14 +244,14 @@ def decode_triangles(data: bytes, count: int) -> np.ndarray:
                 if fec == 15:
                     v, dp = _vbyte(raw, dp)
                     last = c = (last + _unzig32(v)) & M
-                vfifo[vo] = a
+            vfifo[vo] = a
+            vo = (vo + 1) & 15
+            if feb == 0 or (explicit and feb == 15):
+                vfifo[vo] = b
                 vo = (vo + 1) & 15
-                if feb == 0 or feb == 15:
-                    vfifo[vo] = b
-                    vo = (vo + 1) & 15
-                if fec == 0 or fec == 15:
-                    vfifo[vo] = c
-                    vo = (vo + 1) & 15
+            if fec == 0 or (explicit and fec == 15):
+                vfifo[vo] = c
+                vo = (vo + 1) & 15
             edge_a[eo], edge_b[eo] = b, a
             eo = (eo + 1) & 15
             edge_a[eo], edge_b[eo] = c, b

@@ -596,6 +596,12 @@ class DANCING_POINTS_OT_retarget_duet(bpy.types.Operator):
         return {'FINISHED'}
 
 
+def _preset_file(context, filepath):
+    """The preset file of a bone-map operator: its own, else the panel's."""
+    s = _settings(context)
+    return filepath or (s.preset_path if s else "")
+
+
 def _target_from(context, name):
     obj = bpy.data.objects.get(name) if name else getattr(context, "active_object", None)
     if obj is None or obj.type != 'ARMATURE':
@@ -643,7 +649,7 @@ class DANCING_POINTS_OT_retarget_map_save(bpy.types.Operator):
     def execute(self, context):
         try:
             obj = _target_from(context, self.target)
-            path = bpy.path.abspath(self.filepath or (_settings(context).preset_path if _settings(context) else ""))
+            path = bpy.path.abspath(_preset_file(context, self.filepath))
             if not path:
                 raise RetargetFailure("no file name")
             os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
@@ -668,8 +674,7 @@ class DANCING_POINTS_OT_retarget_map_load(bpy.types.Operator):
     def execute(self, context):
         try:
             obj = _target_from(context, self.target)
-            path = self.filepath or (_settings(context).preset_path if _settings(context) else "")
-            mapping = mapping_for(obj, path)
+            mapping = mapping_for(obj, _preset_file(context, self.filepath))
         except Exception as exc:
             self.report({'ERROR'}, _one_line(exc))
             return {'CANCELLED'}

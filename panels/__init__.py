@@ -7,6 +7,7 @@ import tomllib
 import bpy
 
 from . import retarget
+from .common import SubPanel, split_layout
 
 _MANIFEST = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "blender_manifest.toml")
 _version = None
@@ -38,31 +39,17 @@ class VIEW3D_PT_dancing_points(bpy.types.Panel):
         layout.label(text="Import a take: File > Import > Dancing Points take")
 
 
-class _SubPanel:
-    bl_space_type = 'VIEW_3D'
-    bl_region_type = 'UI'
-    bl_category = "Dancing Points"
-    bl_parent_id = "VIEW3D_PT_dancing_points"
-
-
-def _split_layout(layout, context):
-    """A sub-panel's layout in property-split style, and the scene's settings."""
-    layout.use_property_split = True
-    layout.use_property_decorate = False
-    return layout, getattr(context.scene, "dancing_points", None)
-
-
 def _active_take(context):
     from ..operators.props import active_take
     return active_take(context)
 
 
-class VIEW3D_PT_dancing_points_take(_SubPanel, bpy.types.Panel):
+class VIEW3D_PT_dancing_points_take(SubPanel, bpy.types.Panel):
     bl_idname = "VIEW3D_PT_dancing_points_take"
     bl_label = "Take"
 
     def draw(self, context):
-        layout, settings = _split_layout(self.layout, context)
+        layout, settings = split_layout(self.layout, context)
         layout.operator("dancing_points.import_take", text="Import Take...", icon='IMPORT')
         if settings is None:
             return
@@ -78,12 +65,12 @@ class VIEW3D_PT_dancing_points_take(_SubPanel, bpy.types.Panel):
         layout.prop(s, "height")
 
 
-class VIEW3D_PT_dancing_points_synthesis(_SubPanel, bpy.types.Panel):
+class VIEW3D_PT_dancing_points_synthesis(SubPanel, bpy.types.Panel):
     bl_idname = "VIEW3D_PT_dancing_points_synthesis"
     bl_label = "Synthesis"
 
     def draw(self, context):
-        layout, settings = _split_layout(self.layout, context)
+        layout, settings = split_layout(self.layout, context)
         if settings is None:
             return
         layout.prop(settings, "foot_lock")
@@ -95,13 +82,13 @@ class VIEW3D_PT_dancing_points_synthesis(_SubPanel, bpy.types.Panel):
         op.hand_ik = settings.hand_ik
 
 
-class VIEW3D_PT_dancing_points_preview(_SubPanel, bpy.types.Panel):
+class VIEW3D_PT_dancing_points_preview(SubPanel, bpy.types.Panel):
     bl_idname = "VIEW3D_PT_dancing_points_preview"
     bl_label = "Preview"
     bl_options = {'DEFAULT_CLOSED'}
 
     def draw(self, context):
-        layout, settings = _split_layout(self.layout, context)
+        layout, settings = split_layout(self.layout, context)
         if settings is None:
             return
         layout.prop(settings, "preview_path")

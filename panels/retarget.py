@@ -6,6 +6,8 @@ loaded as JSON presets)."""
 
 import bpy
 
+from .common import SubPanel, split_layout
+
 
 class DP_UL_retarget_map(bpy.types.UIList):
     """One row per bone of the target: its name and the Dancing Points bone(s) it follows."""
@@ -18,20 +20,13 @@ class DP_UL_retarget_map(bpy.types.UIList):
         row.prop(item, "source", text="", emboss=True)
 
 
-class VIEW3D_PT_dancing_points_retarget(bpy.types.Panel):
+class VIEW3D_PT_dancing_points_retarget(SubPanel, bpy.types.Panel):
     bl_idname = "VIEW3D_PT_dancing_points_retarget"
     bl_label = "Retarget"
-    bl_space_type = 'VIEW_3D'
-    bl_region_type = 'UI'
-    bl_category = "Dancing Points"
-    bl_parent_id = "VIEW3D_PT_dancing_points"
     bl_options = {'DEFAULT_CLOSED'}
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        s = getattr(context.scene, "dp_retarget", None)
+        layout, s = split_layout(self.layout, context, "dp_retarget")
         if s is None:
             return
         for role, label in (("leader", "Leader"), ("follower", "Follower")):
