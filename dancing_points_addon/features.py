@@ -90,7 +90,7 @@ def pose_features(pos_local, rot_local, contacts) -> np.ndarray:
     B = len(pos_local)
     out = np.empty((B, POSE_DIM))
     out[:, :93] = pos_local.reshape(B, -1)
-    out[:, 93:279] = np.swapaxes(rot_local[..., :2], -1, -2).reshape(B, -1)  # rot6d: the first two columns
+    out[:, 93:279] = rot6d(rot_local).reshape(B, -1)
     out[:, 279:] = contacts.reshape(B, 4)
     return out
 

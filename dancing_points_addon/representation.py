@@ -135,46 +135,34 @@ def pose_to_world(points: np.ndarray, rot: np.ndarray, root: np.ndarray):
     return points @ R.swapaxes(-1, -2) + _origin(root)[..., None, :], R[..., None, :, :] @ rot
 
 
+def _on_rows(fn, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``fn`` (a ``*_rows`` function) on roots ``(…, 4)`` of broadcastable shapes."""
+    shape = np.broadcast_shapes(a.shape, b.shape)
+    rows = [np.broadcast_to(v, shape).reshape(-1, 4).T for v in (a, b)]
+    return fn(*rows).T.reshape(shape)
+
+
 def root_relative(ref: np.ndarray, root: np.ndarray) -> np.ndarray:
-    """``ref⁻¹ · root``: ``root`` expressed in the frame ``ref`` (both ``(…, 4)``)."""
-    dx = root[..., 0] - ref[..., 0]
-    dz = root[..., 1] - ref[..., 1]
-    c, s = ref[..., 2], ref[..., 3]
-    # Ry(θ)^T (dx, 0, dz): x' = c dx − s dz, z' = s dx + c dz
-    x = c * dx - s * dz
-    z = s * dx + c * dz
-    # heading difference as a unit complex number: o_root · conj(o_ref)
-    cr, sr = root[..., 2], root[..., 3]
-    out = np.empty(x.shape + (4,))
-    out[..., 0], out[..., 1] = x, z
-    out[..., 2], out[..., 3] = cr * c + sr * s, sr * c - cr * s
-    return out
+    """``ref⁻¹ · root``: ``root`` expressed in the frame ``ref`` (both ``(…, 4)``):
+    ``Ry(θ)ᵀ (dx, 0, dz)`` and the heading difference ``o_root · conj(o_ref)``."""
+    return _on_rows(relative_rows, ref, root)
 
 
 def root_compose(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
     """``ref · rel``: inverse of :func:`root_relative`."""
-    if ref.ndim == 1 and rel.ndim == 1:  # one frame, in plain floats
+    if ref.ndim == 1 and rel.ndim == 1:  # one frame (the runtime, per frame), in plain floats
         x0, z0, c, s = ref.tolist()
         r0, r1, cr, sr = rel.tolist()
         co, so = cr * c - sr * s, sr * c + cr * s
         n = 1.0 / max(sqrt(co * co + so * so), 1e-300)
         return np.array([x0 + c * r0 + s * r1, z0 - s * r0 + c * r1, co * n, so * n])
-    c, s = ref[..., 2], ref[..., 3]
-    x = ref[..., 0] + c * rel[..., 0] + s * rel[..., 1]
-    z = ref[..., 1] - s * rel[..., 0] + c * rel[..., 1]
-    cr, sr = rel[..., 2], rel[..., 3]
-    co, so = cr * c - sr * s, sr * c + cr * s
-    n = 1.0 / np.maximum(np.sqrt(co * co + so * so), 1e-300)
-    out = np.empty(x.shape + (4,))
-    out[..., 0], out[..., 1] = x, z
-    out[..., 2], out[..., 3] = co * n, so * n
-    return out
+    return _on_rows(compose_rows, ref, rel)
 
 
-# Component-major ("rows") versions for the per-frame runtime: roots as ``(4, n)``
-# arrays, one contiguous row per component, ``ref`` of the same shape. The
-# arithmetic is exactly that of the functions above; numpy calls on contiguous
-# rows of equal shape cost a fraction of those on strided or broadcast arrays.
+# Component-major ("rows") forms: roots as ``(4, n)`` arrays, one row per
+# component, ``ref`` of the same shape. The functions above run on them; the
+# runtime's features call them directly (numpy calls on contiguous rows of
+# equal shape cost a fraction of those on strided or broadcast arrays).
 
 _REL_SIGN = np.array([[-1.0], [1.0], [1.0], [-1.0]])
 
