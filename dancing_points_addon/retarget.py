@@ -65,12 +65,13 @@ import re
 
 import numpy as np
 
+from . import blender_math as bm
+from .blender_math import C  # motion space (Y up) -> Blender (Z up)
 from .ik import rotation_between, smoothstep, two_bone_ik
+from .representation import CONTACT_HEIGHT, CONTACT_SPEED, floor_levels, foot_speeds
 from .rotations import matrix_to_euler, matrix_to_quat
 from .skeleton import JOINT_INDEX, JOINT_NAMES, PARENTS
 
-# Motion space (Y up) -> Blender (Z up), as blender_math.C.
-C = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 PRESET_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "retarget_presets")
 ROOT_CHAIN = "root"
 SIDES = ("l", "r")
@@ -265,15 +266,6 @@ def validate_mapping(mapping: dict, names) -> dict:
 
 # --------------------------------------------------------------------------- the source
 
-def spec_rest_joints(bone_vectors):
-    """SPEC rest joint positions ``(31, 3)`` in the source armature (Blender axes, root at 0)."""
-    bv = np.asarray(bone_vectors, dtype=np.float64)
-    ends = np.zeros((len(JOINT_NAMES), 3))
-    for n in range(1, len(JOINT_NAMES)):
-        ends[n] = ends[PARENTS[n]] + bv[n]
-    return ends @ C.T
-
-
 def spec_pose_from_channels(quats, root_location, rest_rot, rest_heads, bone_vectors):
     """Inverse of ``blender_math.pose_channels``: SPEC ``positions (T, 31, 3)`` and
     global ``rotations (T, 31, 3, 3)`` (motion space) of a Dancing Points armature
@@ -334,19 +326,19 @@ def source_landmarks(points):
     return out
 
 
-def detect_contacts(points, fps=30.0, up=2, height=0.06, speed=0.30, floor=None):
-    """SPEC §6 contacts ``(T, K)`` of foot points ``(T, K, 3)``: < ``height`` above
-    their floor level (5th percentile of their height, or ``floor``) and slower
-    than ``speed`` m/s (``up``: the up axis, 2 for Blender space)."""
+def detect_contacts(points, fps=30.0, up=2, height=CONTACT_HEIGHT, speed=CONTACT_SPEED, floor=None):
+    """Contacts ``(T, K)`` of foot points ``(T, K, 3)`` by the SPEC §6 rule
+    (:func:`~.representation.contact_labels`: < ``height`` above the point's
+    floor level, 5th percentile of its height or ``floor``; slower than
+    ``speed`` m/s), with the speed relaxed to the slower of the two steps
+    around a frame, so a planted foot's first and last frames count.
+    ``up``: the up axis (2 for Blender space)."""
     p = np.asarray(points, dtype=np.float64)
     h = p[..., up]
-    lvl = np.percentile(h, 5, axis=0) if floor is None else np.asarray(floor, dtype=np.float64)
-    v = np.zeros(h.shape)
-    if len(p) > 1:
-        d = np.linalg.norm(np.diff(p, axis=0), axis=-1) * fps
-        v[1:] = d
-        v[0] = d[0]
-        v[1:-1] = np.minimum(d[:-1], d[1:])  # either neighbour slow
+    lvl = floor_levels(h) if floor is None else np.asarray(floor, dtype=np.float64)
+    v = foot_speeds(p, fps)
+    if len(p) > 2:
+        v[1:-1] = np.minimum(v[1:-1], v[2:])  # either neighbouring step slow
     return (h - lvl < height) & (v < speed)
 
 
@@ -451,15 +443,11 @@ def channels(basis, rotation_modes=None):
     the first 3, scale (T, B, 3))`` of ``matrix_basis (T, B, 4, 4)``.
     ``rotation_modes``: per bone 'QUATERNION' (default) or an Euler order."""
     basis = np.asarray(basis, dtype=np.float64)
-    T, B = basis.shape[:2]
     lin = basis[..., :3, :3]
     scale = np.linalg.norm(lin, axis=-2)
     rot = lin / np.where(scale > 1e-12, scale, 1.0)[..., None, :]
     rot = _nearest_rotation(rot)
-    q = matrix_to_quat(rot)
-    dots = np.sum(q[1:] * q[:-1], axis=-1) if T > 1 else np.zeros((0, B))
-    flips = np.concatenate([np.zeros((1, B)), np.cumsum(dots < 0, axis=0) % 2])
-    q = q * np.where(flips[..., None] == 1, -1.0, 1.0)
+    q = bm.continuous_quats(matrix_to_quat(rot))
     out_rot = q.copy()
     if rotation_modes is not None:
         for b, mode in enumerate(rotation_modes):
@@ -526,7 +514,7 @@ class Retargeter:
         self.match_head = bool(match_head)
         self.blend_frames = max(int(blend_frames), 1)
         self.bv = np.asarray(bone_vectors, dtype=np.float64)
-        self.src_rest = spec_rest_joints(self.bv)  # (31, 3) source armature, Blender axes
+        self.src_rest = bm.to_blender(bm.rest_joints(self.bv))  # (31, 3) source armature, Blender axes
         tgt = target
         heads = tgt.heads()
         # Groups of target bones sharing a chain, ordered root-most first.
