@@ -55,7 +55,7 @@ import tempfile
 import threading
 import time
 
-from .errors import InputError
+from .errors import InputError, one_line
 
 FORMATS = ("npz", "bvh", "blend", "fbx")
 BPY_FORMATS = ("blend", "fbx")
@@ -64,10 +64,9 @@ BPY_INPUTS = CORE_INPUTS + (".fbx",)
 REPORT_NAME = "batch_report.json"
 MSG_PREFIX = "@@dancing_points.batch@@ "
 PART = ".part"
-EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
+EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 130, 143
 THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
               "VECLIB_MAXIMUM_THREADS")
-MODEL_ENV = "DP_MODEL_DIR"
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the checkout / extension folder
 
 
@@ -83,6 +82,7 @@ def default_jobs() -> int:
 def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> None:
     """The batch options (shared by the ``batch`` subcommand and Blender's ``convert``)."""
     from .cli import height_metres, positive_float, positive_int
+    from .runtime import MODEL_ENV
 
     p.add_argument("inputs", nargs="+", metavar="IN",
                    help="take files (.csv), BVH (.bvh) or CMU AMC (.amc) files, or folders searched "
@@ -264,7 +264,7 @@ def plan(entries, out_dir, fmt, render=False, overwrite=False, resume=False):
 def resolve_model_dir(explicit=None):
     from . import runtime
 
-    d = explicit or os.environ.get(MODEL_ENV, "") or runtime.MODEL_DIR
+    d = explicit or os.environ.get(runtime.MODEL_ENV, "") or runtime.MODEL_DIR
     d = os.path.abspath(os.path.expanduser(d))
     missing = [f for f in runtime.MODEL_FILES.values() if not os.path.isfile(os.path.join(d, f))]
     if missing:
@@ -408,15 +408,11 @@ class _Channel:
             raise _Orphaned() from None
 
 
-def _one_line(text) -> str:
-    return " ".join(str(text).split())
-
-
 def error_text(exc) -> str:
     """The one-line reason of a failed take (the message alone for a user-facing error)."""
     if isinstance(exc, InputError) or getattr(exc, "one_line", False):
-        return _one_line(exc)
-    msg = _one_line(exc)
+        return one_line(exc)
+    msg = one_line(exc)
     return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
 
 
@@ -455,7 +451,7 @@ def write_duet_files(temps: dict, duet) -> None:
     ``bvh_leader``, ``bvh_follower``. Plain writes (the paths are temporary)."""
     import numpy as np
 
-    if "npz" in temps:
+    if "npz" in temps:  # (not runtime.save_npz: its own temporary file would escape a killed worker's cleanup)
         with open(temps["npz"], "wb") as f:
             np.savez_compressed(f, **duet.arrays())
             f.flush()
@@ -770,7 +766,7 @@ class Batch:
 
     def _job(self, task):
         needs_bpy = self.fmt in BPY_FORMATS or "mp4" in task.kinds
-        return {"type": "job", "id": task.index, "input": task.input, "format": self.fmt,
+        return {"type": "job", "id": task.index, "input": task.input,
                 "temps": dict(zip(task.kinds, task.temps)), "needs_bpy": needs_bpy,
                 "options": self.options}
 
@@ -866,7 +862,7 @@ class Batch:
                     try:
                         _commit(task)
                     except InputError as exc:
-                        self._finish(task, "failed", _one_line(exc), msg.get("frames"), msg.get("seconds"))
+                        self._finish(task, "failed", one_line(exc), msg.get("frames"), msg.get("seconds"))
                     except OSError as exc:
                         self._finish(task, "failed", f"cannot write output ({exc.strerror or exc})",
                                      msg.get("frames"), msg.get("seconds"))
@@ -1056,7 +1052,7 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
     try:
         write_report(report_path, report)
     except InputError as exc:
-        print(f"error: cannot write the report: {_one_line(exc)}", file=err)
+        print(f"error: cannot write the report: {one_line(exc)}", file=err)
         report_path = None
     c = report["counts"]
     summary = (f"{len(tasks)} file(s): {c['ok']} ok, {c['failed']} failed, {c['skipped']} skipped"

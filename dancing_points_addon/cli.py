@@ -16,7 +16,7 @@ import math
 import os
 import sys
 
-from .errors import InputError
+from .errors import InputError, one_line
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -258,22 +258,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _one_line(text) -> str:
-    return " ".join(str(text).split())
-
-
 def main(argv=None) -> int:
     debug = os.environ.get("DP_DEBUG", "") not in ("", "0")
     try:
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
     except UsageError as exc:
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except InputError as exc:
         if debug:
             raise
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
@@ -281,6 +277,6 @@ def main(argv=None) -> int:
     except Exception as exc:  # noqa: BLE001 - never a raw traceback for users
         if debug:
             raise
-        print(f"error: internal error ({type(exc).__name__}: {_one_line(exc)}); "
+        print(f"error: internal error ({type(exc).__name__}: {one_line(exc)}); "
               f"run with DP_DEBUG=1 for details", file=sys.stderr)
         return EXIT_FAILURE

@@ -15,6 +15,11 @@ class InputError(ValueError):
         super().__init__(f"{where}: {message}")
 
 
+def one_line(text) -> str:
+    """``text`` (or an exception's message) with all whitespace runs as one space."""
+    return " ".join(str(text).split())
+
+
 def read_text(path) -> str:
     """A text file's contents (UTF-8, with or without BOM, else Latin-1); a file
     that cannot be read is an :class:`InputError` naming it."""

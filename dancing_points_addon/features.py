@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .representation import (compose_rows, relative_rows, rot6d, rot6d_to_matrix, rot_to_local, rot_to_world,
-                             root_relative, to_local, to_world)
+from .representation import (compose_rows, relative_rows, root_relative, rot6d, rot6d_to_matrix, rot_to_local,
+                             to_local)
 
 FPS = 30.0
 PAST = 15

@@ -26,6 +26,7 @@ from .representation import (pose_to_world, root_compose, root_from_head, root_r
                              rot_to_local, to_local, to_world)
 from .skeleton import FEET, JOINT_NAMES, TRACKED
 
+MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
 MODEL_FILES = {"mapping": "mapping.onnx", "leader": "tracker_leader.onnx", "follower": "tracker_follower.onnx"}
 # Head height (end of `upperneck`, metres) of the training leader standing, and

@@ -16,11 +16,11 @@ import bpy
 from bpy.props import BoolProperty, StringProperty
 
 from ..dancing_points_addon.errors import InputError
+from ..dancing_points_addon.runtime import MODEL_ENV
 from . import bake
 from .props import active_take
 from .take_io import TakeError, take_from_collection
 
-MODEL_ENV = "DP_MODEL_DIR"
 _NET_CACHE = {}
 
 

@@ -24,14 +24,16 @@ import tempfile
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from dancing_points_addon import runtime  # noqa: E402
+from dancing_points_addon.cli import positive_int  # noqa: E402
 SALSA = pathlib.Path(os.environ.get("DP_SHARED", ROOT.parent / "shared")) / "data" / "cmu_salsa"
-MODEL_FILES = ("mapping.onnx", "tracker_leader.onnx", "tracker_follower.onnx")
 GOAL = 1.7
 
 
 def model_dir(explicit):
-    for cand in (explicit, os.environ.get("DP_MODEL_DIR", ""), str(ROOT / "models"), "/tmp/tiny_models"):
-        if cand and all(os.path.isfile(os.path.join(cand, f)) for f in MODEL_FILES):
+    for cand in (explicit, os.environ.get(runtime.MODEL_ENV, ""), runtime.MODEL_DIR):
+        if cand and all(os.path.isfile(os.path.join(cand, f)) for f in runtime.MODEL_FILES.values()):
             return cand
     sys.exit("bench_batch: no synthesis models (give --models DIR)")
 
@@ -77,9 +79,9 @@ def _load(other):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", default="")
-    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--jobs", type=positive_int, default=2)
     ap.add_argument("--formats", default="", help="comma-separated formats to time as well")
-    ap.add_argument("--rounds", type=int, default=3, help="alternating rounds; the best time of each counts")
+    ap.add_argument("--rounds", type=positive_int, default=3, help="alternating rounds; the best time of each counts")
     args = ap.parse_args()
     models = model_dir(args.models)
     takes = [SALSA / f"60_{i:02d}.amc" for i in range(1, 9)]
@@ -97,9 +99,9 @@ def main():
         print(f"{frames} duet frames; jobs1 {t1:.2f} s, jobs{args.jobs} {t2:.2f} s, ratio {ratio:.2f} "
               f"(goal >= {GOAL}; best of {args.rounds})")
         for fmt in [f for f in args.formats.split(",") if f]:
-            dt, _, other = timed_batch(takes, tmp / f"f_{fmt}", fmt, args.jobs, models)
+            dt, fmt_frames, other = timed_batch(takes, tmp / f"f_{fmt}", fmt, args.jobs, models)
             print(f"--format {fmt} --jobs {args.jobs}: {dt:.2f} s ({dt / len(takes):.2f} s per take, "
-                  f"{frames / dt:.0f} duet frames/s){_load(other)}")
+                  f"{fmt_frames / dt:.0f} duet frames/s){_load(other)}")
     if ratio < GOAL:
         print(f"FAIL: ratio {ratio:.2f} < {GOAL}")
         return 1

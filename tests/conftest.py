@@ -9,6 +9,8 @@ SHARED = pathlib.Path(os.environ.get("DP_SHARED", ROOT.parent / "shared"))
 SALSA = SHARED / "data" / "cmu_salsa"
 SOLO = SHARED / "data" / "cmu_solo_dance"
 ASSETS = SHARED / "assets"
+# The shipped models (``$DP_MODEL_DIR`` overrides, e.g. to try freshly trained ones).
+MODELS = os.environ.get("DP_MODEL_DIR") or str(ROOT / "models")
 
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))

@@ -25,20 +25,17 @@ import time
 import numpy as np
 import pytest
 
-from conftest import ROOT
-from dancing_points_addon import batch
+from conftest import MODELS, ROOT
+from dancing_points_addon import batch, runtime
 from dancing_points_addon.asf_amc import load_amc
 from dancing_points_addon.bvh import load_bvh, write_bvh
 from dancing_points_addon.skeleton import JOINT_NAMES, Motion
 from dancing_points_addon.take import take_from_motion, write_take
 
-MODEL_FILES = ("mapping.onnx", "tracker_leader.onnx", "tracker_follower.onnx")
 N60 = 300  # frames at 60 Hz per good take (5 s): 150 duet frames
 N30 = N60 // 2
 
 
-# The shipped models (``$DP_MODEL_DIR`` overrides).
-MODELS = os.environ.get("DP_MODEL_DIR") or str(ROOT / "models")
 # input (relative) -> output base (relative); and input -> a fragment of its failure reason
 GOOD = {"a.csv": "a", "c.csv": "c", "sub/b.bvh": "sub/b", "amc/60_03.amc": "amc/60_03"}
 BAD = {"broken.csv": "unknown header column", "sub/trunc.bvh": "trunc.bvh", "noasf/61_09.amc": "ASF",
@@ -541,7 +538,7 @@ for line in sys.stdin:
 def _fake_args(tmp_path, inputs, **kw):
     models = tmp_path / "models"
     models.mkdir(exist_ok=True)
-    for f in MODEL_FILES:
+    for f in runtime.MODEL_FILES.values():
         (models / f).write_bytes(b"")
     d = dict(inputs=[str(p) for p in inputs], output_dir=str(tmp_path / "out"), format="bvh", jobs=1,
              render=False, overwrite=False, resume=False, report=None, models=str(models), threads=1,
@@ -608,7 +605,7 @@ def test_bad_command_lines(tmp_path, takes):
     (tmp_path / "nothing_here").mkdir()
     (tmp_path / "nothing_here" / "notes.txt").write_text("")
     cases = [
-        (["batch", tmp_path / "nothing_here", "-o", tmp_path / "o", "--models", MODELS or tmp_path],
+        (["batch", tmp_path / "nothing_here", "-o", tmp_path / "o", "--models", MODELS],
          "no input files found"),
         (["batch", takes / "a.csv", "-o", tmp_path / "o", "--models", tmp_path], "no synthesis models"),
         (["batch", takes / "a.csv", "-o", tmp_path / "o", "--jobs", "0"], "at least 1"),

@@ -20,7 +20,7 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 import blender_scene_util as bsu  # noqa: E402
-from conftest import ROOT, SALSA  # noqa: E402
+from conftest import MODELS, SALSA  # noqa: E402
 from ext_util import enable_extension, import_from_extension  # noqa: E402
 
 from types import SimpleNamespace  # noqa: E402
@@ -32,13 +32,10 @@ from dancing_points_addon.resample import resample_take  # noqa: E402
 from dancing_points_addon.skeleton import JOINT_NAMES, Motion  # noqa: E402
 from dancing_points_addon.take import read_take, take_from_motion, write_take  # noqa: E402
 
-MODEL_FILES = ("mapping.onnx", "tracker_leader.onnx", "tracker_follower.onnx")
 SECONDS = 10.0
 MM = 1e-3
 
 
-# The shipped models (``$DP_MODEL_DIR`` overrides, e.g. to try freshly trained ones).
-MODELS = os.environ.get("DP_MODEL_DIR") or str(ROOT / "models")
 
 
 def _cut(motion: Motion, seconds: float) -> Motion:
@@ -359,8 +356,6 @@ def test_failures_and_cancel_leave_scene_unchanged(files, monkeypatch):
 @pytest.fixture(scope="module")
 def baked(files):
     """Import the CSV take, synthesise with the operator (defaults: foot locking on)."""
-    if MODELS is None:
-        pytest.skip("no synthesis models")
     scene = bsu.fresh_scene()
     coll = _import(files["csv"])
     take_io = import_from_extension("operators.take_io")

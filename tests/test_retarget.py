@@ -23,22 +23,20 @@ Two parts:
   proportion: the pelvis height follows the leg length, by design); the raw
   figures are printed as well.
 
-Models: ``$DP_MODEL_DIR``, else the repository's ``models/``, else ``/tmp/tiny_models``.
+Models: the shipped ``models/`` (``$DP_MODEL_DIR`` overrides).
 """
 from __future__ import annotations
 
 import json
-import os
 import time
 
 import numpy as np
 import pytest
 
-from conftest import ASSETS, ROOT, SALSA
+from conftest import ASSETS, MODELS, SALSA
 from dancing_points_addon import gltf_meshopt
 from dancing_points_addon import retarget as rt
 
-MODEL_FILES = ("mapping.onnx", "tracker_leader.onnx", "tracker_follower.onnx")
 AVATARS = {"leader": "White_M_1_Casual.glb", "follower": "White_F_1_Casual.glb"}
 # The take: seconds 10-15 of CMU salsa 60_10 (the dancers hold hands in it).
 START, SECONDS = 10.0, 5.0
@@ -307,16 +305,6 @@ if bpy is not None:
     from ext_util import import_from_extension
 
 
-def _model_dir():
-    for cand in (os.environ.get("DP_MODEL_DIR", ""), str(ROOT / "models"), "/tmp/tiny_models"):
-        if cand and all(os.path.isfile(os.path.join(cand, f)) for f in MODEL_FILES):
-            return cand
-    return None
-
-
-MODELS = _model_dir()
-
-
 def _build_apose_rig(name="UE Dancer", size=1.0, modes=('QUATERNION', 'XYZ', 'ZXY')):
     """The :func:`_apose_rig` (scaled by ``size``) as a Blender armature with a
     skinned box body, bones in the rotation ``modes`` in turn."""
@@ -387,8 +375,6 @@ def _reference(arm):
 def scene(tmp_path_factory):
     if bpy is None:
         pytest.skip("bpy not installed")
-    if MODELS is None:
-        pytest.skip("no synthesis models (set DP_MODEL_DIR or train the tiny ones into /tmp/tiny_models)")
     if not SALSA.exists() or not (ASSETS / AVATARS["leader"]).exists():
         pytest.skip("shared data or avatars not found")
     from dancing_points_addon.asf_amc import load_amc
