@@ -596,6 +596,26 @@ def test_new_actions_and_the_rigs_own_action_kept(scene):
     assert rt.load_preset(path)["bones"] == m
 
 
+def _wrist_gaps(W, sources, targets, target_hands):
+    """Per frame, the distances ``(T, 4)`` of every leader-wrist/follower-wrist pair:
+    of the Dancing Points armatures ``sources`` (bone tails of lwrist, rwrist) and of
+    the rigs ``targets`` (heads of ``target_hands``), from evaluated matrices ``W``."""
+    def points(obj, names, tails):
+        idx = [b.name for b in obj.pose.bones]
+        m = [W[obj.name][:, idx.index(n)] for n in names]
+        if tails:
+            return np.stack([np.einsum("tij,j->ti", x, [0, obj.data.bones[n].length, 0, 1])[:, :3]
+                             for x, n in zip(m, names)], 1)
+        return np.stack([x[:, :3, 3] for x in m], 1)
+
+    def gaps(a, b):
+        return np.linalg.norm(a[:, :, None] - b[:, None], axis=-1).reshape(len(a), 4)
+
+    sl, sf = (points(o, ["lwrist", "rwrist"], True) for o in sources)
+    tl, tf = (points(o, list(target_hands), False) for o in targets)
+    return gaps(sl, sf), gaps(tl, tf)
+
+
 def test_hands_that_hold_stay_together(scene):
     """Where the source dancers' wrists are < 15 cm apart, the avatars' are too
     (at the source's gap, up to arm reach)."""
@@ -604,23 +624,9 @@ def test_hands_that_hold_stay_together(scene):
     (la, _), (fa, _) = scene["avatars"]["leader"], scene["avatars"]["follower"]
     W = _evaluate([dp["leader"], dp["follower"], la, fa], frames)
 
-    def wr(obj, names, tails):
-        idx = [o.name for o in obj.pose.bones]
-        out = []
-        for n in names:
-            m = W[obj.name][:, idx.index(n)]
-            p = np.einsum("tij,j->ti", m, [0, obj.data.bones[n].length, 0, 1])[:, :3] if tails else m[:, :3, 3]
-            out.append(p)
-        return np.stack(out, 1)
-
-    sl, sf = wr(dp["leader"], ["lwrist", "rwrist"], True), wr(dp["follower"], ["lwrist", "rwrist"], True)
-    tl, tf = wr(la, ["LeftHand", "RightHand"], False), wr(fa, ["LeftHand", "RightHand"], False)
-    ds = np.linalg.norm(sl[:, :, None] - sf[:, None], axis=-1).reshape(len(frames), 4)
-    dt = np.linalg.norm(tl[:, :, None] - tf[:, None], axis=-1).reshape(len(frames), 4)
+    ds, dt = _wrist_gaps(W, (dp["leader"], dp["follower"]), (la, fa), ("LeftHand", "RightHand"))
     held = ds < 0.15
-    if not held.any():
-        print("\nno hand holds in this clip")
-        return
+    assert held.any(), "the clip must hold hands somewhere for this test to mean anything"
     gap = np.abs(dt[held] - ds[held])
     print(f"\nhand holds: {held.sum()} pair-frames; |target gap - source gap| mean {gap.mean() / CM:.2f} cm, "
           f"max {gap.max() / CM:.2f} cm")
@@ -652,24 +658,13 @@ def test_single_dancer_closes_hands_on_the_partners_rig(scene):
     frames = scene["frames"]
     W = _evaluate([dp["leader"], dp["follower"], ue["leader"], ue["follower"]], frames)
 
-    def wrists(obj, tails, names):
-        idx = [p.name for p in obj.pose.bones]
-        m = [W[obj.name][:, idx.index(n)] for n in names]
-        if tails:
-            return np.stack([np.einsum("tij,j->ti", x, [0, obj.data.bones[n].length, 0, 1])[:, :3]
-                             for x, n in zip(m, names)], 1)
-        return np.stack([x[:, :3, 3] for x in m], 1)
-
-    sl, sf = (wrists(dp[r], True, ["lwrist", "rwrist"]) for r in ("leader", "follower"))
-    tl, tf = (wrists(ue[r], False, ["hand_l", "hand_r"]) for r in ("leader", "follower"))
-    ds = np.linalg.norm(sl[:, :, None] - sf[:, None], axis=-1).reshape(len(frames), 4)
-    dt = np.linalg.norm(tl[:, :, None] - tf[:, None], axis=-1).reshape(len(frames), 4)
+    ds, dt = _wrist_gaps(W, (dp["leader"], dp["follower"]), (ue["leader"], ue["follower"]), ("hand_l", "hand_r"))
     held = ds < 0.15
-    if held.any():
-        gap = np.abs(dt[held] - ds[held])
-        print(f"\nsingle-dancer retarget: {held.sum()} held pair-frames, |target gap - source gap| "
-              f"median {np.median(gap) / CM:.2f} cm, max {gap.max() / CM:.2f} cm")
-        assert np.median(gap) < 3 * CM
+    assert held.any(), "the clip must hold hands somewhere for this test to mean anything"
+    gap = np.abs(dt[held] - ds[held])
+    print(f"\nsingle-dancer retarget: {held.sum()} held pair-frames, |target gap - source gap| "
+          f"median {np.median(gap) / CM:.2f} cm, max {gap.max() / CM:.2f} cm")
+    assert np.median(gap) < 3 * CM
 
 
 def test_bad_input_reports_one_line(scene):
