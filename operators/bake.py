@@ -58,8 +58,9 @@ class _Created:
         self.ids = []
 
 
-def _ensure_object_mode(context):
-    obj = context.view_layer.objects.active
+def ensure_object_mode(context):
+    """Leave edit/pose mode of the active object (operators that add or key objects need object mode)."""
+    obj = context.view_layer.objects.active if context.view_layer else None
     if obj is not None and obj.mode != 'OBJECT':
         bpy.ops.object.mode_set(mode='OBJECT')
 
@@ -72,7 +73,7 @@ def build_armature(context, name, bone_vectors, collection, created):
     heads, tails = bm.armature_rest(bone_vectors)
     view_layer = context.view_layer
     prev_active = view_layer.objects.active
-    _ensure_object_mode(context)
+    ensure_object_mode(context)
     view_layer.objects.active = obj
     bpy.ops.object.mode_set(mode='EDIT')
     try:

@@ -27,9 +27,10 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, IntProperty, PointerProperty, StringProperty
 
+from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon import retarget as rt
 from ..dancing_points_addon.skeleton import JOINT_NAMES
-from . import compat
+from . import bake, compat
 from .props import is_duet
 
 REF_PROP = "dp_reference_basis"
@@ -150,10 +151,9 @@ def source_motion(arm_obj):
         f = compat.find_fcurve(action, slot, 'pose.bones["root"].location', i)
         if f is not None:
             loc[:, i] = compat.sample_fcurve(f, frames)
-    rest_rot = np.stack([_mat(bones[n].matrix_local)[:3, :3] for n in JOINT_NAMES])
-    rest_heads = np.stack([np.array(bones[n].head_local) for n in JOINT_NAMES])
+    rest_rot, rest_heads = bake.rest_frames(arm_obj)
     tails = np.stack([np.array(bones[n].tail_local) for n in JOINT_NAMES])
-    bv = (tails - rest_heads) @ rt.C  # Blender -> motion space
+    bv = bm.to_motion(tails - rest_heads)
     bv[0] = 0.0
     pos, rot = rt.spec_pose_from_channels(quats, loc, rest_rot, rest_heads, bv)
     return frames, pos, rot, bv, _mat(arm_obj.matrix_world)
@@ -346,12 +346,6 @@ def _fps():
     return scene.render.fps / scene.render.fps_base if scene is not None else 30.0
 
 
-def _ensure_object_mode(context):
-    obj = context.view_layer.objects.active if context.view_layer else None
-    if obj is not None and obj.mode != 'OBJECT':
-        bpy.ops.object.mode_set(mode='OBJECT')
-
-
 def _partner_of(source):
     """The other DP armature of ``source``'s duet collection, or None."""
     role = source.get(ROLE_PROP)
@@ -367,7 +361,7 @@ def _partner_of(source):
 def retarget_one(context, source, target, preset="", foot_lock=True, close_hands=True):
     """Retarget ``source`` (a DP armature) onto ``target``; the hands close onto the
     partner's rig when the partner dancer was already retargeted. Returns a dict of figures."""
-    _ensure_object_mode(context)
+    bake.ensure_object_mode(context)
     job = _Job(source, target, preset, foot_lock)
     info = {"scale": job.ret.scale, "frames": len(job.frames)}
     partner = _partner_of(source) if close_hands else None
@@ -395,7 +389,7 @@ def retarget_one(context, source, target, preset="", foot_lock=True, close_hands
 def retarget_pair(context, pairs, preset=("", ""), foot_lock=True, close_hands=True):
     """Retarget ``pairs`` = ((leader DP armature, rig), (follower DP armature, rig))
     jointly (hands closed symmetrically). Returns ``{role: info}``."""
-    _ensure_object_mode(context)
+    bake.ensure_object_mode(context)
     origin = _duet_origin(*[s for s, _ in pairs]) if len(pairs) == 2 else None
     jobs = [_Job(s, t, p, foot_lock, origin) for (s, t), p in zip(pairs, preset)]
     out = {}
