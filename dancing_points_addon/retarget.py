@@ -71,6 +71,7 @@ from .ik import rotation_between, smoothstep, two_bone_ik
 from .representation import CONTACT_HEIGHT, CONTACT_SPEED, floor_levels, foot_speeds
 from .rotations import matrix_to_euler, matrix_to_quat
 from .skeleton import JOINT_INDEX, JOINT_NAMES, PARENTS
+from .take import atomic_output
 
 PRESET_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "retarget_presets")
 ROOT_CHAIN = "root"
@@ -160,11 +161,9 @@ def save_preset(path, mapping: dict, name: str = "", convention: str = "") -> No
         parse_chain(chain)
     data = {"name": name or os.path.splitext(os.path.basename(os.fspath(path)))[0],
             "convention": convention, "bones": {k: mapping[k] for k in mapping}}
-    tmp = os.fspath(path) + ".part"
-    with open(tmp, "w", encoding="utf-8") as fh:
+    with atomic_output(path, "w", encoding="utf-8") as fh:
         json.dump(data, fh, indent=1)
         fh.write("\n")
-    os.replace(tmp, path)
 
 
 def detect_convention(names, conventions=None):
@@ -372,10 +371,10 @@ class TargetRig:
     ``names``, ``parents`` (index, -1 for roots), ``rest (B, 4, 4)``
     (``Bone.matrix_local``), ``lengths (B,)``, ``ref_basis (B, 4, 4)`` (the
     reference pose as ``matrix_basis``; default identity: the rest pose),
-    ``matrix_world (4, 4)`` (the armature object's), ``connected (B,)`` bool.
+    ``matrix_world (4, 4)`` (the armature object's).
     """
 
-    def __init__(self, names, parents, rest, lengths=None, ref_basis=None, matrix_world=None, connected=None):
+    def __init__(self, names, parents, rest, lengths=None, ref_basis=None, matrix_world=None):
         self.names = list(names)
         self.index = {n: i for i, n in enumerate(self.names)}
         self.parents = np.asarray(parents, dtype=np.int64)
@@ -385,7 +384,6 @@ class TargetRig:
         self.ref_basis = np.broadcast_to(np.eye(4), (B, 4, 4)).copy() if ref_basis is None \
             else np.asarray(ref_basis, dtype=np.float64)
         self.matrix_world = np.eye(4) if matrix_world is None else np.asarray(matrix_world, dtype=np.float64)
-        self.connected = np.zeros(B, dtype=bool) if connected is None else np.asarray(connected, dtype=bool)
         self.order = topological_order(self.parents)
         self.depth = _depths(self.parents)
         self.ref_pose = pose_from_basis(self.rest, self.parents, self.ref_basis[None], self.order)[0]
@@ -678,7 +676,6 @@ class Retargeter:
         partners of different sizes keep their distance).
         Returns a pose object (world matrices in ``.W``)."""
         pts, G_src = source_world(positions, rotations, source_matrix)
-        self._src_pts = pts
         T = pts.shape[0]
         tgt = self.target
         W0 = tgt.ref_world

@@ -89,8 +89,7 @@ def _bone_arrays(obj):
     parents = [index[b.parent.name] if b.parent is not None else -1 for b in bones]
     rest = np.stack([_mat(b.matrix_local) for b in bones])
     lengths = np.array([b.length for b in bones])
-    connected = np.array([bool(b.use_connect) for b in bones])
-    return names, parents, rest, lengths, connected
+    return names, parents, rest, lengths
 
 
 def reference_basis(obj, store=True):
@@ -117,8 +116,8 @@ def reference_basis(obj, store=True):
 
 
 def target_rig(obj, store=True):
-    names, parents, rest, lengths, connected = _bone_arrays(obj)
-    return rt.TargetRig(names, parents, rest, lengths, reference_basis(obj, store), _mat(obj.matrix_world), connected)
+    names, parents, rest, lengths = _bone_arrays(obj)
+    return rt.TargetRig(names, parents, rest, lengths, reference_basis(obj, store), _mat(obj.matrix_world))
 
 
 def source_motion(arm_obj):
