@@ -143,6 +143,27 @@ def quat_slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray) -> np.ndarray:
     return out / np.linalg.norm(out, axis=-1, keepdims=True)
 
 
+def quat_to_axis_angle(q: np.ndarray) -> np.ndarray:
+    """Quaternions ``(..., 4)`` (w, x, y, z) to Blender's axis-angle ``(..., 4)``
+    (angle in [0, pi], then a unit axis; +Y for the identity)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    q = q * np.where(q[..., :1] < 0, -1.0, 1.0)
+    ang = 2.0 * np.arccos(np.clip(q[..., 0], -1.0, 1.0))
+    s = np.sqrt(np.maximum(1.0 - q[..., 0] ** 2, 0.0))
+    axis = np.where(s[..., None] > 1e-9, q[..., 1:] / np.maximum(s, 1e-9)[..., None], np.array([0.0, 1.0, 0.0]))
+    return np.concatenate([ang[..., None], axis], axis=-1)
+
+
+def axis_angle_to_quat(aa: np.ndarray) -> np.ndarray:
+    """Blender's axis-angle ``(..., 4)`` (angle, axis; the axis need not be unit)
+    to quaternions (w, x, y, z)."""
+    aa = np.asarray(aa, dtype=np.float64)
+    h = aa[..., :1] / 2
+    ax = aa[..., 1:] / np.maximum(np.linalg.norm(aa[..., 1:], axis=-1, keepdims=True), 1e-12)
+    return np.concatenate([np.cos(h), np.sin(h) * ax], axis=-1)
+
+
 def rotation_angle(m: np.ndarray) -> np.ndarray:
     """Angle (radians) of rotation matrices."""
     tr = np.trace(m, axis1=-2, axis2=-1)

@@ -29,6 +29,7 @@ from bpy.props import BoolProperty, CollectionProperty, EnumProperty, IntPropert
 
 from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon import retarget as rt
+from ..dancing_points_addon.rotations import axis_angle_to_quat, euler_to_matrix, quat_to_axis_angle, quat_to_matrix
 from ..dancing_points_addon.skeleton import JOINT_NAMES
 from . import bake, compat
 from .props import is_duet
@@ -207,15 +208,6 @@ def _path(name, prop):
     return 'pose.bones["{:s}"].{:s}'.format(bpy.utils.escape_identifier(name), prop)
 
 
-def _axis_angle(q):
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    q = q * np.where(q[..., :1] < 0, -1.0, 1.0)
-    ang = 2.0 * np.arccos(np.clip(q[..., 0], -1.0, 1.0))
-    s = np.sqrt(np.maximum(1.0 - q[..., 0] ** 2, 0.0))
-    axis = np.where(s[..., None] > 1e-9, q[..., 1:] / np.maximum(s, 1e-9)[..., None], np.array([0.0, 1.0, 0.0]))
-    return np.concatenate([ang[..., None], axis], axis=-1)
-
-
 def key_rig(obj, basis, frames, action_name):
     """A NEW action on ``obj`` keying every bone's location, rotation (in the pose
     bone's own rotation mode) and scale from ``matrix_basis (T, B, 4, 4)``."""
@@ -236,7 +228,7 @@ def key_rig(obj, basis, frames, action_name):
                 compat.write_keys(compat.ensure_fcurves(action, slot, _path(name, "rotation_quaternion"), i, name),
                                   frames, rot[:, b, i])
         elif mode == 'AXIS_ANGLE':
-            aa = _axis_angle(rot[:, b])
+            aa = quat_to_axis_angle(rot[:, b])
             for i in range(4):
                 compat.write_keys(compat.ensure_fcurves(action, slot, _path(name, "rotation_axis_angle"), i, name),
                                   frames, aa[:, i])
@@ -253,8 +245,6 @@ def key_rig(obj, basis, frames, action_name):
 def keyed_world(obj, ret, frames):
     """World matrices ``(T, B, 4, 4)`` of a rig keyed by :func:`key_rig`, read back
     from its action (numpy forward kinematics, no scene evaluation)."""
-    from ..dancing_points_addon.rotations import euler_to_matrix, quat_to_matrix
-
     action, slot = compat.assigned_action(obj)
     names = [b.name for b in obj.data.bones]
     T, B = len(frames), len(names)
@@ -272,10 +262,8 @@ def keyed_world(obj, ret, frames):
             R = quat_to_matrix(np.stack([get("rotation_quaternion", i, pb.rotation_quaternion[i])
                                          for i in range(4)], -1))
         elif pb.rotation_mode == 'AXIS_ANGLE':
-            aa = np.stack([get("rotation_axis_angle", i, pb.rotation_axis_angle[i]) for i in range(4)], -1)
-            h = aa[:, 0] / 2
-            ax = aa[:, 1:] / np.maximum(np.linalg.norm(aa[:, 1:], axis=-1, keepdims=True), 1e-12)
-            R = quat_to_matrix(np.concatenate([np.cos(h)[:, None], np.sin(h)[:, None] * ax], -1))
+            R = quat_to_matrix(axis_angle_to_quat(np.stack([get("rotation_axis_angle", i, pb.rotation_axis_angle[i])
+                                                            for i in range(4)], -1)))
         else:
             xyz = np.stack([get("rotation_euler", i, pb.rotation_euler[i]) for i in range(3)], -1)
             R = euler_to_matrix(xyz[:, ["XYZ".index(a) for a in pb.rotation_mode]], pb.rotation_mode)

@@ -78,6 +78,25 @@ def test_conventions_detected_and_mapped():
     assert m["neck_01"] == "lowerneck" and m["neck_02"] == "upperneck"
 
 
+def test_axis_angle_channels_round_trip_on_salsa_rotations():
+    """The axis-angle keys the retarget writes for AXIS_ANGLE bones read back as the
+    same rotation (every joint of 300 frames of CMU 60_10, identity included)."""
+    from dancing_points_addon.asf_amc import load_amc
+    from dancing_points_addon.rotations import (axis_angle_to_quat, matrix_to_quat, quat_to_axis_angle,
+                                                quat_to_matrix, rotation_angle)
+
+    R = load_amc(SALSA / "60_10.amc").rotations[:300]
+    q = matrix_to_quat(R)
+    q[0, 0] = (1.0, 0.0, 0.0, 0.0)
+    aa = quat_to_axis_angle(-q)  # the sign of a quaternion does not matter
+    assert (aa[..., 0] >= 0).all() and (aa[..., 0] <= np.pi + 1e-12).all()
+    np.testing.assert_allclose(np.linalg.norm(aa[..., 1:], axis=-1), 1.0, atol=1e-9)
+    np.testing.assert_allclose(aa[0, 0], (0.0, 0.0, 1.0, 0.0), atol=1e-12)  # identity: zero angle about +Y
+    back = quat_to_matrix(axis_angle_to_quat(aa * np.array([1.0, 2.0, 2.0, 2.0])))  # any axis length
+    err = rotation_angle(np.swapaxes(back, -1, -2) @ quat_to_matrix(q))
+    assert err.max() < 1e-6, err.max()
+
+
 def test_preset_round_trip_and_errors(tmp_path):
     presets = rt.builtin_conventions()
     assert {"mixamo", "rigify", "unreal", "cmu_bvh", "cmu_asf"} <= set(presets)

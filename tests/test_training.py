@@ -68,6 +68,42 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     assert rel < 0.01
 
 
+def test_tracker_loss_options_route_gradients_as_documented(clips):
+    """The latent formulations compared on the val frames (models/README.md):
+    ``match_detach`` stops L_matching at the encoder's latent; ``estimator_rec``
+    adds L_rec through the inference path D(S(x)); ``l2_loss`` is the paper's
+    unsquared norm. Checked on real leader samples."""
+    x, y, _ = tracking_samples(clips[:2], "leader")
+    xb, yb = torch.from_numpy(x[:64]), torch.from_numpy(y[:64])
+
+    def grads(model, term):
+        model.fit_normalizers(xb, yb)
+        model.eval()  # no dropout or noise: the same forward pass for every term
+        model.zero_grad()
+        xn, yn = model.nx.norm(xb), model.ny.norm(yb - model._base(xb))
+        model._loss(xn, yn)[term].backward()
+        return {k: float(sum(p.grad.abs().sum() for p in getattr(model, k).parameters() if p.grad is not None))
+                for k in ("encoder", "estimator", "decoder")}
+
+    torch.manual_seed(0)
+    plain = grads(TrackingNet(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM), "match")
+    assert plain["encoder"] > 0 and plain["estimator"] > 0 and plain["decoder"] == 0
+    detached = grads(TrackingNet(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM, match_detach=True), "match")
+    assert detached["encoder"] == 0 and detached["estimator"] > 0
+    est = grads(TrackingNet(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM, estimator_rec=1.0), "rec_s")
+    assert est["encoder"] == 0 and est["estimator"] > 0 and est["decoder"] > 0
+    # the paper's unsquared loss: the per-sample RMS, never above the (squared) MSE's root
+    m = TrackingNet(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM)
+    m.fit_normalizers(xb, yb)
+    m.eval()
+    with torch.no_grad():
+        xn, yn = m.nx.norm(xb), m.ny.norm(yb - m._base(xb))
+        mse = m._loss(xn, yn)["rec"]
+        m.l2_loss = True
+        rms = m._loss(xn, yn)["rec"]
+    assert 0 < rms <= mse.sqrt() + 1e-6
+
+
 def test_training_samples_stay_inside_train_frames(salsa_dir, clips):
     """Every sample's future window ends inside its clip, and each clip holds exactly
     the train frames of its take, so no test frame reaches training or normalisation."""

@@ -69,6 +69,16 @@ class _Net(nn.Module):
         self.pose_dim = pose_dim
         self.pose_noise = pose_noise
 
+    # True: the paper's losses, the per-sample Euclidean norm (not squared; the
+    # reconstruction's divided by sqrt(dim), a per-sample RMS)
+    l2_loss = False
+
+    def _rec(self, pred, target):
+        d = pred - target
+        if self.l2_loss:
+            return ((d ** 2).mean(-1) + 1e-12).sqrt().mean()
+        return (d ** 2).mean()
+
     def _base(self, x):
         return pose_base(x, self.n_out, self.pose_dim) if self.pose_dim else 0.0
 
@@ -142,7 +152,7 @@ class MappingNet(_Net):
         self.net = mlp(n_in, n_out, hidden, layers, dropout)
 
     def _loss(self, xn, yn):
-        return {"rec": ((self.net(xn) - yn) ** 2).mean()}
+        return {"rec": self._rec(self.net(xn), yn)}
 
     def _predict(self, xn):
         return self.net(xn)
@@ -165,10 +175,15 @@ class TrackingNet(_Net):
     """
 
     def __init__(self, n_in, n_out, hidden, layers=6, channels=16, width=32, noise=0.1, pose_dim=None,
-                 pose_noise=0.0, decoder_input=True):
+                 pose_noise=0.0, decoder_input=True, match_detach=False, estimator_rec=0.0):
         super().__init__(n_in, n_out, noise, pose_dim, pose_noise)
         self.channels, self.width = channels, width
         self.decoder_input = bool(decoder_input)  # False: the paper's decoder, fed the latent alone
+        # True: L_matching trains the estimator only (the encoder's latent is its
+        # target), so matching cannot pull the encoder towards what x alone gives
+        self.match_detach = bool(match_detach)
+        # > 0: also reconstruct through the inference path D(S(x)), with this weight
+        self.estimator_rec = float(estimator_rec)
         z = channels * width
         self.estimator = mlp(n_in, z, hidden, layers)
         self.encoder = mlp(n_in + n_out, z, hidden, layers)
@@ -183,9 +198,13 @@ class TrackingNet(_Net):
     def _loss(self, xn, yn):
         z_e = self._latent(self.encoder(torch.cat([xn, yn], dim=-1)))
         z_s = self._latent(self.estimator(xn))
-        rec = ((self._decode(z_e, xn) - yn) ** 2).mean()
-        match = ((z_e - z_s) ** 2).sum(-1).mean()
-        return {"rec": rec, "match": match}
+        rec = self._rec(self._decode(z_e, xn), yn)
+        m2 = (((z_e.detach() if self.match_detach else z_e) - z_s) ** 2).sum(-1)
+        match = (m2 + 1e-12).sqrt().mean() if self.l2_loss else m2.mean()
+        out = {"rec": rec, "match": match}
+        if self.estimator_rec > 0:
+            out["rec_s"] = self.estimator_rec * self._rec(self._decode(z_s, xn), yn)
+        return out
 
     def _predict(self, xn):
         return self._decode(self._latent(self.estimator(xn)), xn)
@@ -205,7 +224,7 @@ class VanillaTracker(_Net):
         self.net = nn.Sequential(mlp(n_in, hidden, hidden, layers), nn.ELU(), mlp(hidden, n_out, hidden, layers))
 
     def _loss(self, xn, yn):
-        return {"rec": ((self.net(xn) - yn) ** 2).mean()}
+        return {"rec": self._rec(self.net(xn), yn)}
 
     def _predict(self, xn):
         return self.net(xn)

@@ -118,6 +118,20 @@ def main(argv=None):
     ap.add_argument("--map-epochs", type=int, default=None)
     ap.add_argument("--paper-decoder", action="store_true",
                     help="trackers' decoder fed the latent alone (the paper's), not the latent and the input")
+    ap.add_argument("--match-detach", action="store_true",
+                    help="trackers' L_matching trains the estimator only (stop-gradient on the encoder's latent)")
+    ap.add_argument("--estimator-rec", type=float, default=0.0,
+                    help="weight of a second L_rec through the inference path D(S(x)) (default 0: off)")
+    ap.add_argument("--track-epochs", type=int, default=None)
+    ap.add_argument("--pose-noise", type=float, default=None,
+                    help="trackers: perturb the current-pose input by up to this many POSE_NOISE_UNITS")
+    ap.add_argument("--runtime-keys", action="store_true",
+                    help="trackers: train on the keys the runtime feeds (the mapping's predictions), not the "
+                         "ground-truth future; needs OUT/mapping.onnx")
+    ap.add_argument("--rollout-epochs", type=int, default=None,
+                    help="trackers: epochs of a second stage on their own closed-loop states (DAgger-style)")
+    ap.add_argument("--l2-loss", action="store_true",
+                    help="trackers (and ablation (a)) trained with the paper's unsquared L2 losses")
     ap.add_argument("--weights", choices=("int8", "fp32"), default="int8",
                     help="exported weights: int8 (quantised, shipped) or float32")
     args = ap.parse_args(argv)
@@ -129,7 +143,13 @@ def main(argv=None):
     if args.threads:
         torch.set_num_threads(args.threads)
     device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
-    cfg = CONFIGS[args.config]
+    cfg = dict(CONFIGS[args.config])
+    if args.pose_noise is not None:
+        cfg["pose_noise"] = args.pose_noise
+    if args.runtime_keys:
+        cfg["runtime_keys"] = True
+    if args.rollout_epochs is not None:
+        cfg["rollout_epochs"] = args.rollout_epochs
     os.makedirs(args.out, exist_ok=True)
     log = lambda s: print(s, flush=True)  # noqa: E731
     t_all = time.time()
@@ -167,10 +187,20 @@ def main(argv=None):
         keys_fn = mapping_fn if cfg["runtime_keys"] and not past_input else None
         x, y, where = tracking_samples(clips, role, past_input=past_input, mapping_fn=keys_fn)
         log(f"{name}: {x.shape} -> {y.shape}")
-        kw = {"decoder_input": False} if args.paper_decoder and cls is TrackingNet else {}
+        kw = {}
+        if cls is TrackingNet:
+            if args.paper_decoder:
+                kw["decoder_input"] = False
+            if args.match_detach:
+                kw["match_detach"] = True
+            if args.estimator_rec:
+                kw["estimator_rec"] = args.estimator_rec
         m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=cfg["pose_noise"],
                 **kw)
-        info1 = train_model(m, x, y, cfg["track_epochs"], device=device, log=log, seed=args.seed)
+        if args.l2_loss:
+            m.l2_loss = True
+            kw["l2_loss"] = True
+        info1 = train_model(m, x, y, args.track_epochs or cfg["track_epochs"], device=device, log=log, seed=args.seed)
         info = {"stage1": info1, "seconds": info1["seconds"]}
         if cfg["rollout_epochs"]:
             m.cpu()
