@@ -24,7 +24,7 @@ import torch
 from dancing_points_addon import features as F
 from dancing_points_addon.dataset import load_clips
 
-from .data import mapping_samples, rollout_states, tracking_samples
+from .data import mapping_samples, rollout_states, time_warp, tracking_samples
 from .export import export
 from .model import MappingNet, TrackingNet, VanillaTracker
 
@@ -86,11 +86,13 @@ def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None,
 
 CONFIGS = {
     # hidden units, epochs
-    # Teacher-forced ground-truth keys, no pose noise and no rollout stage
-    # (models/README.md: first chosen on three test takes; recipes are now
-    # compared with --split fit and evaluate --split val instead).
+    # Teacher-forced ground-truth keys, no rollout stage; current-pose noise
+    # (up to 0.3 units) for the leader's trackers only: chosen per dancer on
+    # the val frames (train --split fit, evaluate --split val; the comparison
+    # is in models/README.md). The ablations get their dancer's settings.
     "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 60,
-             "pose_noise": 0.0, "runtime_keys": False, "rollout_steps": 20, "rollout_epochs": 0},
+             "pose_noise": {"leader": 0.3, "follower": 0.0}, "runtime_keys": False, "rollout_steps": 20,
+             "rollout_epochs": 0},
     "tiny": {"map_hidden": 32, "map_epochs": 1, "track_hidden": 32, "track_epochs": 1,
              "pose_noise": 0.3, "runtime_keys": True, "rollout_steps": 4, "rollout_epochs": 1},
 }
@@ -116,6 +118,8 @@ def main(argv=None):
     ap.add_argument("--map-noise", type=float, default=None, help="mapping input noise (default 0.1)")
     ap.add_argument("--map-dropout", type=float, default=None, help="mapping dropout (default 0.1)")
     ap.add_argument("--map-epochs", type=int, default=None)
+    ap.add_argument("--map-timewarp", default=None,
+                    help="mapping: also train on the clips replayed at these speeds, e.g. 0.9,1.1")
     ap.add_argument("--paper-decoder", action="store_true",
                     help="trackers' decoder fed the latent alone (the paper's), not the latent and the input")
     ap.add_argument("--match-detach", action="store_true",
@@ -124,7 +128,10 @@ def main(argv=None):
                     help="weight of a second L_rec through the inference path D(S(x)) (default 0: off)")
     ap.add_argument("--track-epochs", type=int, default=None)
     ap.add_argument("--pose-noise", type=float, default=None,
-                    help="trackers: perturb the current-pose input by up to this many POSE_NOISE_UNITS")
+                    help="trackers (both dancers): perturb the current-pose input by up to this many "
+                         "POSE_NOISE_UNITS (default: the config's, per dancer)")
+    ap.add_argument("--roles", default="leader,follower",
+                    help="comma list of dancers whose trackers (and ablations) to train (default: both)")
     ap.add_argument("--runtime-keys", action="store_true",
                     help="trackers: train on the keys the runtime feeds (the mapping's predictions), not the "
                          "ground-truth future; needs OUT/mapping.onnx")
@@ -162,14 +169,17 @@ def main(argv=None):
                       "(split 'fit', for comparing recipes); mirror augmented"}
 
     if "mapping" in only:
-        x, y = mapping_samples(clips)
+        map_clips = clips
+        if args.map_timewarp:
+            map_clips = clips + time_warp(clips, [float(r) for r in args.map_timewarp.split(",")])
+        x, y = mapping_samples(map_clips)
         log(f"mapping: {x.shape} -> {y.shape}")
         noise = 0.1 if args.map_noise is None else args.map_noise
         dropout = 0.1 if args.map_dropout is None else args.map_dropout
         epochs = args.map_epochs or cfg["map_epochs"]
         m = MappingNet(F.MAP_IN, F.MAP_OUT, cfg["map_hidden"], noise=noise, dropout=dropout)
         info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed)
-        info.update(noise=noise, dropout=dropout)
+        info.update(noise=noise, dropout=dropout, timewarp=args.map_timewarp)
         export(m, "mapping", os.path.join(args.out, "mapping.onnx"), F.MAP_IN,
                {"hidden": cfg["map_hidden"], "train": info, **split_meta}, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"),
@@ -195,8 +205,8 @@ def main(argv=None):
                 kw["match_detach"] = True
             if args.estimator_rec:
                 kw["estimator_rec"] = args.estimator_rec
-        m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=cfg["pose_noise"],
-                **kw)
+        pose_noise = cfg["pose_noise"][role] if isinstance(cfg["pose_noise"], dict) else cfg["pose_noise"]
+        m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=pose_noise, **kw)
         if args.l2_loss:
             m.l2_loss = True
             kw["l2_loss"] = True
@@ -219,14 +229,17 @@ def main(argv=None):
             x2, y2 = np.concatenate([x, xr]), np.concatenate([y, y[idx]])
             info2 = train_model(m, x2, y2, cfg["rollout_epochs"], device=device, log=log, seed=args.seed + 1)
             info.update(stage2=info2, seconds=info1["seconds"] + info2["seconds"])
-        meta = {"hidden": cfg["track_hidden"], "role": role, "train": info, **split_meta, **kw,
+        meta = {"hidden": cfg["track_hidden"], "role": role, "pose_noise": pose_noise, "train": info, **split_meta, **kw,
                 "default_pose": default_pose(x, where, clips)}
         meta.update(extra or {})
         export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), meta)
         report["models"][name] = info
 
-    for role in ("leader", "follower"):
+    roles = [r for r in args.roles.split(",") if r]
+    if set(roles) - {"leader", "follower"}:
+        ap.error(f"--roles: leader and/or follower, not {args.roles!r}")
+    for role in roles:
         if role in only:
             tracker(TrackingNet, role, f"tracker_{role}", os.path.join(args.out, f"tracker_{role}.onnx"))
         if not args.ablations:
