@@ -46,14 +46,15 @@ def save_checkpoint(model, path, meta):
     torch.save({"state_dict": model.state_dict(), "meta": meta}, path)
 
 
-def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None, seed=0, refit=True):
+def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None, seed=0, refit=True,
+                weight_decay=1e-4):
     torch.manual_seed(seed)
     xt, yt = torch.from_numpy(x), torch.from_numpy(y)
     if refit:  # normalisation statistics of the (train split) samples
         model.fit_normalizers(xt, yt)
     model.to(device)
     xt, yt = xt.to(device), yt.to(device)
-    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
+    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
     steps = max(1, epochs * math.ceil(len(xt) / batch))
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.05)
     g = torch.Generator(device="cpu").manual_seed(seed)
@@ -118,6 +119,8 @@ def main(argv=None):
     ap.add_argument("--map-noise", type=float, default=None, help="mapping input noise (default 0.1)")
     ap.add_argument("--map-dropout", type=float, default=None, help="mapping dropout (default 0.1)")
     ap.add_argument("--map-epochs", type=int, default=None)
+    ap.add_argument("--map-hidden", type=int, default=None, help="mapping hidden units (default: the config's)")
+    ap.add_argument("--map-wd", type=float, default=None, help="mapping AdamW weight decay (default 1e-4)")
     ap.add_argument("--map-timewarp", default=None,
                     help="mapping: also train on the clips replayed at these speeds, e.g. 0.9,1.1")
     ap.add_argument("--paper-decoder", action="store_true",
@@ -177,13 +180,14 @@ def main(argv=None):
         noise = 0.1 if args.map_noise is None else args.map_noise
         dropout = 0.1 if args.map_dropout is None else args.map_dropout
         epochs = args.map_epochs or cfg["map_epochs"]
-        m = MappingNet(F.MAP_IN, F.MAP_OUT, cfg["map_hidden"], noise=noise, dropout=dropout)
-        info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed)
-        info.update(noise=noise, dropout=dropout, timewarp=args.map_timewarp)
+        hidden = args.map_hidden or cfg["map_hidden"]
+        wd = 1e-4 if args.map_wd is None else args.map_wd
+        m = MappingNet(F.MAP_IN, F.MAP_OUT, hidden, noise=noise, dropout=dropout)
+        info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed, weight_decay=wd)
+        info.update(noise=noise, dropout=dropout, weight_decay=wd, timewarp=args.map_timewarp)
         export(m, "mapping", os.path.join(args.out, "mapping.onnx"), F.MAP_IN,
-               {"hidden": cfg["map_hidden"], "train": info, **split_meta}, weights=args.weights)
-        save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"),
-                        {"hidden": cfg["map_hidden"], **split_meta})
+               {"hidden": hidden, "train": info, **split_meta}, weights=args.weights)
+        save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": hidden, **split_meta})
         report["models"]["mapping"] = info
     mapping_fn = None
     if cfg["runtime_keys"] and only & {"leader", "follower", "vanilla"}:
