@@ -149,9 +149,9 @@ def quat_to_axis_angle(q: np.ndarray) -> np.ndarray:
     q = np.asarray(q, dtype=np.float64)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     q = q * np.where(q[..., :1] < 0, -1.0, 1.0)
-    ang = 2.0 * np.arccos(np.clip(q[..., 0], -1.0, 1.0))
-    s = np.sqrt(np.maximum(1.0 - q[..., 0] ** 2, 0.0))
-    axis = np.where(s[..., None] > 1e-9, q[..., 1:] / np.maximum(s, 1e-9)[..., None], np.array([0.0, 1.0, 0.0]))
+    s = np.linalg.norm(q[..., 1:], axis=-1)
+    ang = 2.0 * np.arctan2(s, q[..., 0])  # accurate near the identity, unlike arccos(w)
+    axis = np.where(s[..., None] > 1e-12, q[..., 1:] / np.maximum(s, 1e-300)[..., None], np.array([0.0, 1.0, 0.0]))
     return np.concatenate([ang[..., None], axis], axis=-1)
 
 

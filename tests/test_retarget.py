@@ -81,8 +81,10 @@ def test_conventions_detected_and_mapped():
 
 
 def test_axis_angle_channels_round_trip_on_salsa_rotations():
-    """The axis-angle keys the retarget writes for AXIS_ANGLE bones read back as the
-    same rotation (every joint of 300 frames of CMU 60_10, identity included)."""
+    """The conversions the retarget uses for AXIS_ANGLE bones (writing keys and
+    reading them back) round-trip to the same rotation: every joint of 300
+    frames of CMU 60_10, the identity and a tiny rotation included. (The rigs of
+    the Blender tests have no AXIS_ANGLE bones.)"""
     from dancing_points_addon.asf_amc import load_amc
     from dancing_points_addon.rotations import (axis_angle_to_quat, matrix_to_quat, quat_to_axis_angle,
                                                 quat_to_matrix, rotation_angle)
@@ -90,7 +92,9 @@ def test_axis_angle_channels_round_trip_on_salsa_rotations():
     R = load_amc(SALSA / "60_10.amc").rotations[:300]
     q = matrix_to_quat(R)
     q[0, 0] = (1.0, 0.0, 0.0, 0.0)
+    q[0, 1] = (np.cos(5e-8), np.sin(5e-8), 0.0, 0.0)  # 1e-7 rad about +X
     aa = quat_to_axis_angle(-q)  # the sign of a quaternion does not matter
+    np.testing.assert_allclose(aa[0, 1], (1e-7, 1.0, 0.0, 0.0), rtol=1e-9, atol=1e-15)
     assert (aa[..., 0] >= 0).all() and (aa[..., 0] <= np.pi + 1e-12).all()
     np.testing.assert_allclose(np.linalg.norm(aa[..., 1:], axis=-1), 1.0, atol=1e-9)
     np.testing.assert_allclose(aa[0, 0], (0.0, 0.0, 1.0, 0.0), atol=1e-12)  # identity: zero angle about +Y

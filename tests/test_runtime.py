@@ -232,8 +232,9 @@ def test_hand_ik_puts_head_and_wrists_on_the_input(take10):
 
 
 def test_foot_locking_halves_skating(synth):
-    """SPEC §6 skating of the leader over the 13 test takes (frame-weighted, as
-    the evaluation reports it): with locking at most half of what it is
+    """SPEC §6 skating of the leader over the 13 test takes, frame-weighted like
+    the evaluation (which also writes and reads each take as a CSV file, so its
+    figures differ slightly): with locking at most half of what it is
     without, and no more than the ground truth's own. Per take it is printed;
     a single take may exceed its own ground truth (take 08 does)."""
     from dancing_points_addon.dataset import SALSA_TAKES

@@ -92,16 +92,24 @@ def test_tracker_loss_options_route_gradients_as_documented(clips):
     assert detached["encoder"] == 0 and detached["estimator"] > 0
     est = grads(TrackingNet(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM, estimator_rec=1.0), "rec_s")
     assert est["encoder"] == 0 and est["estimator"] > 0 and est["decoder"] > 0
-    # the paper's unsquared loss: the per-sample RMS, never above the (squared) MSE's root
+    # the paper's unsquared losses: the reconstruction's per-sample RMS, the
+    # matching's per-sample Euclidean norm
     m = TrackingNet(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM)
     m.fit_normalizers(xb, yb)
     m.eval()
     with torch.no_grad():
         xn, yn = m.nx.norm(xb), m.ny.norm(yb - m._base(xb))
-        mse = m._loss(xn, yn)["rec"]
+        z_e = m._latent(m.encoder(torch.cat([xn, yn], dim=-1)))
+        z_s = m._latent(m.estimator(xn))
+        d = m._decode(z_e, xn) - yn
+        squared = m._loss(xn, yn)
         m.l2_loss = True
-        rms = m._loss(xn, yn)["rec"]
-    assert 0 < rms <= mse.sqrt() + 1e-6
+        plain = m._loss(xn, yn)
+    torch.testing.assert_close(squared["rec"], (d ** 2).mean())
+    torch.testing.assert_close(squared["match"], ((z_e - z_s) ** 2).sum(-1).mean())
+    torch.testing.assert_close(plain["rec"], (d ** 2).mean(-1).sqrt().mean())
+    torch.testing.assert_close(plain["match"], (z_e - z_s).norm(dim=-1).mean())
+    assert abs(float(plain["match"]) - float(squared["match"])) > 1e-6
 
 
 def test_training_samples_stay_inside_train_frames(salsa_dir, clips):

@@ -97,8 +97,9 @@ class _Net(nn.Module):
     POSE_NOISE_UNITS = ((0, 93, 0.04), (93, 279, 0.08), (279, 283, 0.3))
 
     def corrupt_pose(self, x, force=False):
-        """Training only: perturb the *current pose* input by a random strength per
-        sample (up to ``pose_noise`` × :data:`POSE_NOISE_UNITS`). The residual base
+        """Training only: perturb the *current pose* input with Gaussian noise whose
+        standard deviation is drawn per sample from U(0, ``pose_noise``) ×
+        :data:`POSE_NOISE_UNITS`. The residual base
         is built from the perturbed pose too, so the target teaches the network to
         pull a drifted state back to what the three-point keys say: in a
         closed-loop rollout the state is its own, imperfect, prediction."""

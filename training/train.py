@@ -88,7 +88,7 @@ def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None,
 CONFIGS = {
     # hidden units, epochs
     # Teacher-forced ground-truth keys, no rollout stage; current-pose noise
-    # (up to 0.3 units) for the leader's trackers only: chosen per dancer on
+    # (standard deviation up to 0.3 units) for the leader's trackers only: chosen per dancer on
     # the val frames (train --split fit, evaluate --split val; the comparison
     # is in models/README.md). The ablations get their dancer's settings.
     "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 60,
@@ -131,8 +131,8 @@ def main(argv=None):
                     help="weight of a second L_rec through the inference path D(S(x)) (default 0: off)")
     ap.add_argument("--track-epochs", type=int, default=None)
     ap.add_argument("--pose-noise", type=float, default=None,
-                    help="trackers (both dancers): perturb the current-pose input by up to this many "
-                         "POSE_NOISE_UNITS (default: the config's, per dancer)")
+                    help="trackers (both dancers): perturb the current-pose input with Gaussian noise of a "
+                         "standard deviation up to this many POSE_NOISE_UNITS (default: the config's, per dancer)")
     ap.add_argument("--roles", default="leader,follower",
                     help="comma list of dancers whose trackers (and ablations) to train (default: both)")
     ap.add_argument("--runtime-keys", action="store_true",
@@ -150,6 +150,9 @@ def main(argv=None):
         ap.error("--split fit trains comparison models: give an --out and a --cache of their own "
                  "(not the shipped models/ and cache/)")
 
+    roles = [r for r in args.roles.split(",") if r]
+    if not roles or set(roles) - {"leader", "follower"}:
+        ap.error(f"--roles: leader and/or follower, not {args.roles!r}")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
@@ -166,7 +169,11 @@ def main(argv=None):
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
     only = set(args.only.split(",")) if args.only else {"mapping", "leader", "follower", "vanilla", "pastinput"}
-    report = {"config": args.config, **cfg, "device": device, "split": args.split, "models": {}}
+    # the recipe options given on the command line (paths and machine settings aside)
+    overrides = {k: v for k, v in vars(args).items() if v != ap.get_default(k)
+                 and k not in ("data", "out", "cache", "ablations", "only", "threads", "device", "split", "config")}
+    report = {"config": args.config, **cfg, "overrides": overrides, "device": device, "split": args.split,
+              "models": {}}
     split_meta = {} if args.split == "train" else {
         "data_split": "CMU salsa takes 01-13 at 30 Hz, the first 80% of each take's train frames "
                       "(split 'fit', for comparing recipes); mirror augmented"}
@@ -231,7 +238,8 @@ def main(argv=None):
             log(f"  rollout states: {len(idx)}; mean pose drift "
                 f"{float(np.abs(poses[:, :93] - x[idx, :93]).mean()) * 100:.2f} cm per coordinate")
             x2, y2 = np.concatenate([x, xr]), np.concatenate([y, y[idx]])
-            info2 = train_model(m, x2, y2, cfg["rollout_epochs"], device=device, log=log, seed=args.seed + 1)
+            info2 = train_model(m, x2, y2, cfg["rollout_epochs"], device=device, log=log, seed=args.seed + 1,
+                                refit=False)  # keep stage 1's normalisation: the weights were trained on it
             info.update(stage2=info2, seconds=info1["seconds"] + info2["seconds"])
         meta = {"hidden": cfg["track_hidden"], "role": role, "pose_noise": pose_noise, "train": info, **split_meta, **kw,
                 "default_pose": default_pose(x, where, clips)}
@@ -240,9 +248,6 @@ def main(argv=None):
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), meta)
         report["models"][name] = info
 
-    roles = [r for r in args.roles.split(",") if r]
-    if set(roles) - {"leader", "follower"}:
-        ap.error(f"--roles: leader and/or follower, not {args.roles!r}")
     for role in roles:
         if role in only:
             tracker(TrackingNet, role, f"tracker_{role}", os.path.join(args.out, f"tracker_{role}.onnx"))
@@ -255,10 +260,17 @@ def main(argv=None):
         if "pastinput" in only:  # ablation (b): fed the past three points, no mapping
             tracker(TrackingNet, role, f"pastinput_{role}", os.path.join(args.ablations, f"pastinput_{role}.onnx"),
                     past_input=True, extra={"ablation": "b", "input": "past three-point trajectory"})
-    report["seconds_total"] = time.time() - t_all
+    report["seconds_total"] = time.time() - t_all  # this run
     report_dir = args.out if only & {"mapping", "leader", "follower"} else args.ablations
-    with open(os.path.join(report_dir, "training_report.json"), "w") as f:
-        json.dump(report, f, indent=1)
+    path = os.path.join(report_dir, "training_report.json")
+    if report["models"]:
+        if os.path.exists(path):  # a partial run (--only, --roles) keeps the other models' entries
+            with open(path) as f:
+                old = json.load(f).get("models", {})
+            report["models"] = {**old, **report["models"]}
+        report["seconds_models"] = sum(m.get("seconds", 0.0) for m in report["models"].values())
+        with open(path, "w") as f:
+            json.dump(report, f, indent=1)
     log(f"done in {report['seconds_total']:.0f}s -> {args.out}")
     return 0
 
