@@ -157,28 +157,16 @@ def rollout_states(model_fn, x, where, steps=10, stride=2, record=(2, 5, 10)):
 
 def time_warp(clips, rates):
     """Duet clips replayed at other speeds (``rate`` source frames per output
-    frame: 1.1 is 10 % faster): positions interpolated linearly, rotations by
-    slerp, root frames and contacts derived again. For the mapping network:
-    partners dance the same figures to other tempi."""
+    frame: 1.1 is 10 % faster), by the runtime's resampling (positions linear,
+    rotations by slerp); root frames and contacts derived again. For the
+    mapping network: partners dance the same figures to other tempi."""
     from dancing_points_addon.dataset import Clip, Dancer
-    from dancing_points_addon.rotations import matrix_to_quat, quat_slerp, quat_to_matrix
+    from dancing_points_addon.resample import resample_motion
+    from dancing_points_addon.skeleton import Motion
 
-    out = []
-    for c in clips:
-        if c.follower is None:
-            continue
-        n = c.n_frames
-        for r in rates:
-            t = np.arange(0.0, n - 1, r)
-            i0 = np.floor(t).astype(int)
-            i1 = np.minimum(i0 + 1, n - 1)
-            a = t - i0
+    def warp(d, rate):  # the frames read as if sampled at rate × 30 Hz, resampled to 30 Hz
+        m = resample_motion(Motion(d.positions, d.rotations, F.FPS * rate, np.zeros((31, 3))), F.FPS)
+        return Dancer.from_arrays(m.positions, m.rotations, F.FPS)
 
-            def warp(d):
-                p = d.positions[i0] * (1 - a)[:, None, None] + d.positions[i1] * a[:, None, None]
-                q = quat_slerp(matrix_to_quat(d.rotations[i0]), matrix_to_quat(d.rotations[i1]), a[:, None])
-                return Dancer.from_arrays(p, quat_to_matrix(q), F.FPS)
-
-            out.append(Clip(f"{c.name}x{r:g}", warp(c.leader), warp(c.follower), c.mirrored))
-    return out
-
+    return [Clip(f"{c.name}x{r:g}", warp(c.leader, r), warp(c.follower, r), c.mirrored)
+            for c in clips if c.follower is not None for r in rates]

@@ -148,6 +148,7 @@ def main(argv=None):
     ap.add_argument("--default-pose-from", default=None, metavar="DATA",
                     help="recompute the trackers' start-up pose from this data's unmirrored train split")
     args = ap.parse_args(argv)
+    os.makedirs(args.out, exist_ok=True)
     report = {}
     rp = os.path.join(args.out, "training_report.json")
     if os.path.exists(rp):

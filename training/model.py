@@ -61,17 +61,16 @@ class _Net(nn.Module):
     """Normalisation, optional residual target, input noise; subclasses define
     ``_loss(xn, yn)`` and ``_predict(xn)`` in normalised space."""
 
-    def __init__(self, n_in, n_out, noise=0.1, pose_dim=None, pose_noise=0.0):
+    def __init__(self, n_in, n_out, noise=0.1, pose_dim=None, pose_noise=0.0, l2_loss=False):
         super().__init__()
         self.nx, self.ny = Normalizer(n_in), Normalizer(n_out)
         self.n_out = n_out
         self.noise = noise
         self.pose_dim = pose_dim
         self.pose_noise = pose_noise
-
-    # True: the paper's losses, the per-sample Euclidean norm (not squared; the
-    # reconstruction's divided by sqrt(dim), a per-sample RMS)
-    l2_loss = False
+        # True: the paper's losses, the per-sample Euclidean norm (not squared;
+        # the reconstruction's divided by sqrt(dim), a per-sample RMS)
+        self.l2_loss = bool(l2_loss)
 
     def _rec(self, pred, target):
         d = pred - target
@@ -176,8 +175,8 @@ class TrackingNet(_Net):
     """
 
     def __init__(self, n_in, n_out, hidden, layers=6, channels=16, width=32, noise=0.1, pose_dim=None,
-                 pose_noise=0.0, decoder_input=True, match_detach=False, estimator_rec=0.0):
-        super().__init__(n_in, n_out, noise, pose_dim, pose_noise)
+                 pose_noise=0.0, decoder_input=True, match_detach=False, estimator_rec=0.0, l2_loss=False):
+        super().__init__(n_in, n_out, noise, pose_dim, pose_noise, l2_loss)
         self.channels, self.width = channels, width
         self.decoder_input = bool(decoder_input)  # False: the paper's decoder, fed the latent alone
         # True: L_matching trains the estimator only (the encoder's latent is its
@@ -220,8 +219,8 @@ class TrackingNet(_Net):
 class VanillaTracker(_Net):
     """Ablation (a): encoder and decoder stacked as one MLP, no latent, L_rec only."""
 
-    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, pose_dim=None, pose_noise=0.0):
-        super().__init__(n_in, n_out, noise, pose_dim, pose_noise)
+    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, pose_dim=None, pose_noise=0.0, l2_loss=False):
+        super().__init__(n_in, n_out, noise, pose_dim, pose_noise, l2_loss)
         self.net = nn.Sequential(mlp(n_in, hidden, hidden, layers), nn.ELU(), mlp(hidden, n_out, hidden, layers))
 
     def _loss(self, xn, yn):

@@ -208,7 +208,7 @@ def main(argv=None):
         keys_fn = mapping_fn if cfg["runtime_keys"] and not past_input else None
         x, y, where = tracking_samples(clips, role, past_input=past_input, mapping_fn=keys_fn)
         log(f"{name}: {x.shape} -> {y.shape}")
-        kw = {}
+        kw = {"l2_loss": True} if args.l2_loss else {}
         if cls is TrackingNet:
             if args.paper_decoder:
                 kw["decoder_input"] = False
@@ -218,9 +218,6 @@ def main(argv=None):
                 kw["estimator_rec"] = args.estimator_rec
         pose_noise = cfg["pose_noise"][role] if isinstance(cfg["pose_noise"], dict) else cfg["pose_noise"]
         m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=pose_noise, **kw)
-        if args.l2_loss:
-            m.l2_loss = True
-            kw["l2_loss"] = True
         info1 = train_model(m, x, y, args.track_epochs or cfg["track_epochs"], device=device, log=log, seed=args.seed)
         info = {"stage1": info1, "seconds": info1["seconds"]}
         if cfg["rollout_epochs"]:
