@@ -90,6 +90,35 @@ def foot_skating(pos, mask, floor=None, fps=30.0):
     return float(np.sum(v[pair_low])), int(np.sum(pair_low))
 
 
+def foot_skating_spec(pred, true, mask, fps=30.0):
+    """SPEC §6 foot skating of ``pred``: each foot point's floor level from the
+    ground truth ``true`` of the take (the 5th percentile of its height)."""
+    return foot_skating(pred, mask, floor_levels(true[:, FEET, 1]), fps)
+
+
+def torso_distance(a, b):
+    """Per frame ``(T,)``: closest distance between the two dancers' torso axes
+    (the segment from the pelvis to the lower neck, ends of ``root`` and
+    ``lowerneck``)."""
+    p0, p1 = a[:, 0], a[:, JOINT_INDEX["lowerneck"]]
+    q0, q1 = b[:, 0], b[:, JOINT_INDEX["lowerneck"]]
+    u, v, w = p1 - p0, q1 - q0, p0 - q0
+    A, B, C = (u * u).sum(-1), (u * v).sum(-1), (v * v).sum(-1)
+    D, E = (u * w).sum(-1), (v * w).sum(-1)
+    den = A * C - B * B
+    s = np.where(den > 1e-12, np.clip((B * E - C * D) / np.maximum(den, 1e-12), 0.0, 1.0), 0.0)
+    t = np.clip((B * s + E) / np.maximum(C, 1e-12), 0.0, 1.0)
+    s = np.clip((B * t - D) / np.maximum(A, 1e-12), 0.0, 1.0)
+    diff = (p0 + s[:, None] * u) - (q0 + t[:, None] * v)
+    return np.linalg.norm(diff, axis=-1)
+
+
+def interpenetration(lead, follow, mask, limit=0.15):
+    """Frames whose torso axes are closer than ``limit`` (m): ``(count, frames)``."""
+    d = torso_distance(lead, follow)
+    return _masked((d < limit).astype(float), mask)
+
+
 def jitter(pos, mask, fps=30.0):
     """Mean norm of the third finite difference of joint positions × fps³ (m/s³)."""
     if len(pos) < 4:

@@ -21,10 +21,11 @@ from math import sqrt
 import numpy as np
 
 from . import features as F
+from .follower import WRISTS, FollowerOptions, HandHold, Placement, Separation
 from .pose import PoseRecovery, bone_vectors_from_pose
-from .representation import (pose_to_world, root_compose, root_from_head, root_relative, rot6d_to_matrix,
+from .representation import (DEVICE_FROM_HEAD, pose_to_world, root_compose, root_from_head, root_relative, rot6d_to_matrix,
                              rot_to_local, to_local, to_world)
-from .skeleton import FEET, JOINT_NAMES, TRACKED
+from .skeleton import FEET, HEAD_BONE, JOINT_INDEX, JOINT_NAMES, TRACKED
 
 MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
@@ -163,7 +164,20 @@ class _Dancer:
                                     rot_to_local(rot_world[None], self.root[None]), contacts[None])[0]
 
 
-def advance_together(dancers, key_roots, key_tracked, observed_roots, pulls):
+def recentre(pos, rot):
+    """Each local pose ``(D, 31, 3)``, ``(D, 31, 3, 3)`` moved into the frame its
+    own head defines (SPEC root: the head's floor point, the head device's
+    heading): the frame every training pose is given in. The tracker's pose
+    state cannot then wander away from its root, however long the take."""
+    out_p, out_r = np.empty_like(pos), np.empty_like(rot)
+    for i in range(len(pos)):
+        frame = root_from_head(pos[i, TRACKED[0]], rot[i, HEAD_BONE] @ DEVICE_FROM_HEAD)
+        out_p[i] = to_local(pos[i], frame)
+        out_r[i] = rot_to_local(rot[i], frame)
+    return out_p, out_r
+
+
+def advance_together(dancers, key_roots, key_tracked, observed_roots, pulls, recentre_pose=(False, False)):
     """:meth:`_Dancer.advance` of several dancers at once: their networks one
     after the other, the feature work around them batched over the dancers (at
     these sizes numpy's cost is per call, not per element). ``key_roots (D, K, 4)``,
@@ -177,10 +191,15 @@ def advance_together(dancers, key_roots, key_tracked, observed_roots, pulls):
     for d, r, root, pull in zip(dancers, rel[:, 0], observed_roots, pulls):
         if root is None:
             root = root_compose(d.root, r)
+        elif callable(root):  # a placement given the tracker's own next root
+            root = np.array(root(d.root.tolist(), root_compose(d.root, r).tolist()))
         if pull is not None and pull[1] > 0:
             root = _blend_root(root, pull[0], pull[1])
         d.root = root
     pos, rot = pos[:, 0], rot[:, 0]
+    for i, on in enumerate(recentre_pose):
+        if on:
+            pos[i:i + 1], rot[i:i + 1] = recentre(pos[i:i + 1], rot[i:i + 1])
     con = np.minimum(np.maximum(con[:, 0], 0.0), 1.0)  # np.clip(con, 0, 1), cheaper
     for d, pose in zip(dancers, F.pose_features(pos, rot, con)):
         d.pose = pose
@@ -201,7 +220,8 @@ class Synthesizer:
 
     def __init__(self, model_dir: str | None = None, threads: int = 1, height: float | None = None,
                  foot_lock: bool = True, hand_ik: bool = True, nets: dict | None = None,
-                 anchor_leader: bool = True, anchor_follower: float = 0.1, feedback: str = "network"):
+                 anchor_leader: bool = True, anchor_follower: float = 0.1, feedback=("rigid", "rigid"),
+                 follower: FollowerOptions | None = FollowerOptions(), recentre_pose=(False, True)):
         model_dir = model_dir or MODEL_DIR
         if nets is None:
             nets = {k: OnnxNet(os.path.join(model_dir, f), threads) for k, f in MODEL_FILES.items()}
@@ -210,7 +230,15 @@ class Synthesizer:
         self.foot_lock = foot_lock
         self.hand_ik = hand_ik
         self.anchor_leader, self.anchor_follower = anchor_leader, anchor_follower
-        self.feedback = feedback
+        # per dancer (leader, follower): what the tracker's next step starts from
+        # ("network": its own output, "rigid": the consistent skeleton pose,
+        # "final": the pose the user sees) and whether the pose is re-centred
+        # on its root every frame (see :func:`recentre`)
+        self.feedback = (feedback, feedback) if isinstance(feedback, str) else tuple(feedback)
+        # the follower's placement state, torso separation and hand holds
+        # (None: the earlier path, her root pulled towards the raw prediction)
+        self.follower_options = follower
+        self.recentre_pose = (recentre_pose,) * 2 if isinstance(recentre_pose, bool) else tuple(recentre_pose)
         # Rigid skeleton: the neck may turn but the spine may not stretch, so a
         # baked armature (fixed bone lengths) shows exactly this pose.
         self.ik_options = {"max_stretch": 0.0}
@@ -220,6 +248,10 @@ class Synthesizer:
                                                        rot6d_to_matrix(p[93:279].reshape(31, 6)))
                              for r, p in self.default_pose.items()}
         self._recovery = (PoseRecovery(self.bone_vectors["leader"]), PoseRecovery(self.bone_vectors["follower"]))
+        # the follower's arm lengths (shoulder to wrist), for hand holds
+        bl = np.linalg.norm(self.bone_vectors["follower"], axis=-1)
+        self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
+                                   + bl[JOINT_INDEX[s + "wrist"]] for s in "lr"])
         self.reset()
 
     @staticmethod
@@ -246,12 +278,21 @@ class Synthesizer:
         self._floor = [None, None]
         self._lockers = None
         self._effector = None
+        fo = self.follower_options
+        self._placement = Placement(fo) if fo is not None else None
+        self._separation = Separation(fo.min_distance) if fo is not None else None
+        self._hold = HandHold(fo) if fo is not None and fo.hold else None
+        self._fol_target = None  # (offset from the leader, world root) this frame
+        self._fol_effector = None
         if self.foot_lock or self.hand_ik:
             from . import ik
             if self.foot_lock:
                 self._lockers = (ik.FootLocker(), ik.FootLocker())
             if self.hand_ik:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
+        if self._hold is not None:
+            from . import ik
+            self._fol_effector = ik.EndEffectorIK(**self.ik_options)
 
     def scale(self) -> float:
         """Tracker scale: training height over the user's (paper §7 calibration),
@@ -346,36 +387,75 @@ class Synthesizer:
         (l_roots, l_tr), (f_roots, f_tr) = F.decode_mapping(y, root[None])
         l_roots, l_tr, f_roots, f_tr = l_roots[0], l_tr[0], f_roots[0], f_tr[0]
         self.prev_leader_pred = (l_roots[0], l_tr[0])
+        placement = self._placement
+        if placement is not None:
+            f_roots, f_tr = placement.smooth(f_roots, f_tr)
+            if placement.o.smooth > 0:  # heading rows back to unit length
+                f_roots = f_roots.copy()
+                f_roots[:, 2:] /= np.linalg.norm(f_roots[:, 2:], axis=-1, keepdims=True)
+            self._leader_root = root
+            self._fol_target = self._follower_target(root, l_roots, f_roots)
         if self.t == 0:
-            self.follower.place(f_roots[0])
+            self.follower.place(self._fol_target[1] if placement is not None else f_roots[0])
             self.prev_follower = (f_roots[0], f_tr[0])
         cur_local = to_local(tracked_s, root)
         lk_roots, lk_tr = self._leader_keys(root, cur_local, l_roots, l_tr)
         fk_roots, fk_tr = self._follower_keys(f_roots, f_tr, l_roots, l_tr)
         self.prev_follower = (f_roots[0], f_tr[0])
+        if placement is not None:
+            goal = self._fol_target[1]
+            fol_root, fol_pull = (lambda prev, prop: placement.step(prev, prop, goal)), None
+        else:
+            fol_root, fol_pull = None, (fk_roots[0], self.anchor_follower)
         pos, rot, (lc, fc) = advance_together(
             (self.leader, self.follower), np.array([lk_roots, fk_roots]), np.array([lk_tr, fk_tr]),
-            (root if self.anchor_leader else None, None), (None, (fk_roots[0], self.anchor_follower)))
-        lp, lr = self._recover(0, pos[0], rot[0], lc, tracked_s)
-        fp, fr = self._recover(1, pos[1], rot[1], fc, None)
-        if self.feedback == "final":  # the next step starts from the pose the user sees
-            self.leader.set_pose(lp, lr, lc)
-            self.follower.set_pose(fp, fr, fc)
+            (root if self.anchor_leader else None, fol_root), (None, fol_pull), self.recentre_pose)
+        if self._separation is not None:
+            dx, dz = self._separation.push(pos[0], pos[1])
+            if dx or dz:  # her body and her root state move together
+                pos[1, :, 0] += dx
+                pos[1, :, 2] += dz
+                self.follower.root = self.follower.root + np.array([dx, dz, 0.0, 0.0])
+        rigid = [self._recovery[w](pos[w], rot[w]) for w in (0, 1)]
+        for d, fb, (p, r), c in zip((self.leader, self.follower), self.feedback, rigid, (lc, fc)):
+            if fb == "rigid":  # the next step starts from the consistent skeleton pose
+                d.set_pose(p, r, c)
+        lp, lr = self._recover(0, *rigid[0], lc, tracked_s)
+        fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
+        for d, fb, p, r, c in ((self.leader, self.feedback[0], lp, lr, lc), (self.follower, self.feedback[1], fp, fr, fc)):
+            if fb == "final":  # the next step starts from the pose the user sees
+                d.set_pose(p, r, c)
         self.t += 1
         if s != 1.0:
             lp, fp = lp * (1.0 / s), fp * (1.0 / s)
         return DuetFrame(lp, lr, lc), DuetFrame(fp, fr, fc)
 
     def _recover(self, who, pos, rot, contacts, targets):
-        """Pose recovery (Appendix B) of dancer ``who`` (0 leader, 1 follower):
-        a consistent skeleton pose, foot locking, then head/wrist IK (leader)."""
-        pos, rot = self._recovery[who](pos, rot)
+        """Of dancer ``who`` (0 leader, 1 follower), after pose recovery (Appendix
+        B: a consistent skeleton pose): foot locking, then head/wrist IK (the
+        leader's on the input, the follower's hands in a hold)."""
         if self._lockers is not None:
             contacts = np.maximum(contacts, self._kinematic_contacts(who, pos))
             pos, rot = self._lockers[who].step(pos, rot, contacts)
-        if targets is not None and self._effector is not None:
-            pos, rot = self._effector.step(pos, rot, targets)
+        if targets is not None:
+            effector = self._effector if who == 0 else self._fol_effector
+            if effector is not None:
+                pos, rot = effector.step(pos, rot, targets)
         return pos, rot
+
+    def _hold_targets(self, leader_pos, follower_pos, l_tr, f_tr, l_roots, f_roots):
+        """The follower's wrist targets of a hand hold (head: NaN, untouched) or None."""
+        if self._hold is None:
+            return None
+        # the mapping's predicted wrists of both dancers at the next frame, world
+        lw = to_world(l_tr[0, 1:], l_roots[0])
+        fw = to_world(f_tr[0, 1:], f_roots[0])
+        pred = np.linalg.norm(lw[:, None] - fw[None], axis=-1)
+        tg = self._hold.targets(leader_pos, follower_pos, pred, self._fol_arms)
+        if tg[0] is None and tg[1] is None:
+            return None
+        nan = np.full(3, np.nan)
+        return np.array([nan, nan if tg[0] is None else tg[0], nan if tg[1] is None else tg[1]])
 
     def _kinematic_contacts(self, who, pos):
         """Contact evidence from the predicted motion itself (causal): a foot point
@@ -409,9 +489,19 @@ class Synthesizer:
                 np.concatenate([cur_local[None], l_tr.take(self._OFF, axis=0)]))
 
     def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
-        """Follower's key inputs: last step's prediction of frame t, then this step's."""
-        return (np.concatenate([self.prev_follower[0][None], f_roots.take(self._OFF, axis=0)]),
-                np.concatenate([self.prev_follower[1][None], f_tr.take(self._OFF, axis=0)]))
+        """Follower's key inputs: last step's prediction of frame t, then this step's.
+        With the placement state, the key roots are the predicted trajectory's
+        shape from her own root, eased towards her target (``follower.Placement``)."""
+        tracked = np.concatenate([self.prev_follower[1][None], f_tr.take(self._OFF, axis=0)])
+        if self._placement is not None:
+            off = self._fol_target[0]
+            return (self._placement.keys(self.follower.root.tolist(), f_roots, l_roots, self._leader_root, off,
+                                         self._OFF), tracked)
+        return np.concatenate([self.prev_follower[0][None], f_roots.take(self._OFF, axis=0)]), tracked
+
+    def _follower_target(self, leader_root, l_roots, f_roots):
+        """The follower's placement target: (offset from the leader's root, world root)."""
+        return self._placement.target(leader_root, l_roots, f_roots)
 
     # -- a whole take ----------------------------------------------------------
     def synthesize(self, take, progress=None) -> Duet:

@@ -1,0 +1,279 @@
+"""The follower's own state: where she stands, how her hands meet the leader's,
+how far the two torsos stay apart. Causal, deterministic, per frame.
+
+The mapping network re-predicts the follower's three points every frame from
+the leader's last 0.5 s; taken as they come, that placement jumps from frame to
+frame (she "skates" after it) and nothing ties her to the leader on a long
+take. :class:`Placement` keeps her root as a state instead:
+
+* **target**: the mapping's predicted placement of her root *relative to the
+  leader* over the next ``horizon`` frames, averaged (a denoised estimate), and
+  limited to the distances a couple keeps (``max_offset``);
+* **keys**: her tracker is fed the mapping's predicted trajectory *shape*
+  (each key relative to the first predicted frame) re-attached to her own
+  current root, eased towards the target (``ease``): the tracker walks her
+  there with her feet instead of being shown a jump;
+* **step**: her new root is the tracker's own next root (tied to the steps it
+  takes) pulled the share ``pull`` of the way towards the target, and moved at
+  most ``max_speed`` m/s and turned at most ``max_turn`` rad/s.
+
+Why it stays bounded (a take of any length): the target lies within
+``max_offset`` of the leader's root, which is the input head's; each frame the
+pull closes the share ``pull`` of her distance to it, and she is never farther
+than ``max_gap`` from it (a leash that a smooth take never reaches: the pull
+alone keeps her within a few centimetres to decimetres of it; the evaluation
+counts the frames it engages). So her root is within ``max_offset + max_gap``
+of the leader's in every frame. Her body is re-centred on her root and fed
+back as a rigid skeleton every frame (see ``runtime``), so it can neither
+walk away from the root nor stretch.
+
+:class:`Separation` keeps the two torsos (the pelvis-to-lower-neck axes)
+at least ``min_distance`` apart by moving the follower horizontally, and
+:class:`HandHold` bends her arms onto the leader's hands when the two are in a
+hold, blended in and out.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from math import atan2, cos, hypot, sin, sqrt
+
+import numpy as np
+
+from .representation import relative_rows
+from .skeleton import JOINT_INDEX
+
+FPS = 30.0
+PELVIS, NECK = JOINT_INDEX["root"], JOINT_INDEX["lowerneck"]
+WRISTS = (JOINT_INDEX["lwrist"], JOINT_INDEX["rwrist"])
+
+
+@dataclass(frozen=True)
+class FollowerOptions:
+    """The follower's placement, separation and hold settings (chosen on the
+    val frames, see models/README.md)."""
+
+    horizon: int = 10  # predicted frames averaged into the placement target
+    pull: float = 0.05  # share of the gap to the target closed per frame
+    pull_heading: float = 0.05  # the same for her heading
+    face_leader: float = 0.5  # share of her target heading turned to face the leader
+    smooth: float = 0.8  # exponential smoothing of the predicted trajectories across frames (0: none)
+    ease: float = 0.1  # per-frame easing of the tracker's keys towards the target
+    max_speed: float = 2.5  # m/s, the root's horizontal speed
+    max_turn: float = 6.0  # rad/s, the root's turn rate
+    max_offset: float = 2.0  # m, the farthest target from the leader's root
+    max_gap: float = 0.5  # m, the farthest she may lag behind her target (a leash)
+    min_distance: float = 0.2  # m, torso axes (0: no separation)
+    hold: bool = True  # hand holds by arm IK
+    hold_on: float = 0.25  # m, predicted wrist distance under which a hold starts
+    hold_off: float = 0.35  # m, over which it ends
+    hold_gap: float = 0.07  # m, wrist-to-wrist distance of a hold
+    hold_frames: int = 6  # blend in/out
+    hold_smooth: float = 0.7  # exponential smoothing of the hold's pull on her wrist
+
+
+def _blend(a, b, w):
+    """Root ``w`` of the way from ``a`` to ``b`` (4 floats; heading normalised)."""
+    x, z, c, s = (p + w * (q - p) for p, q in zip(a, b))
+    n = max(hypot(c, s), 1e-9)
+    return [x, z, c / n, s / n]
+
+
+def _compose(ref, rel):
+    x0, z0, c, s = ref
+    r0, r1, cr, sr = rel
+    co, so = cr * c - sr * s, sr * c + cr * s
+    n = 1.0 / max(sqrt(co * co + so * so), 1e-300)
+    return [x0 + c * r0 + s * r1, z0 - s * r0 + c * r1, co * n, so * n]
+
+
+class Placement:
+    """The follower's root as a state (see the module docstring)."""
+
+    def __init__(self, options: FollowerOptions):
+        self.o = options
+        self._prev = None
+        self.leashed = 0  # frames on which the leash engaged (reported, expected rare)
+
+    def smooth(self, *arrays):
+        """Exponential smoothing across frames of the mapping's predicted
+        trajectories (arrays ``(FUTURE, …)`` of frames t+1 …): this frame's
+        prediction of frame t+1+j is blended with last frame's of the same
+        frame (its index j+1; the last one held)."""
+        b = self.o.smooth
+        if b <= 0:
+            return arrays
+        prev = self._prev
+        if prev is not None:
+            arrays = tuple(b * np.concatenate([p[1:], p[-1:]]) + (1.0 - b) * a for p, a in zip(prev, arrays))
+        self._prev = arrays
+        return arrays
+
+    def target(self, leader_root, l_roots, f_roots):
+        """The mapping's placement of the follower relative to the leader, averaged
+        over the first ``horizon`` predicted frames (as ``(dx, dz, cos, sin)``),
+        and the world root it gives at the leader's current root."""
+        h = max(1, min(self.o.horizon, len(f_roots)))
+        rel = relative_rows(np.ascontiguousarray(l_roots[:h].T), np.ascontiguousarray(f_roots[:h].T))
+        dx, dz, c, s = (float(v) for v in rel.mean(axis=1))
+        n = max(hypot(c, s), 1e-9)
+        d = hypot(dx, dz)
+        if d > self.o.max_offset:  # farther than a couple stands: the nearest point within reach
+            dx, dz = dx * self.o.max_offset / d, dz * self.o.max_offset / d
+        c, s = c / n, s / n
+        if self.o.face_leader > 0 and hypot(dx, dz) > 1e-6:
+            # facing the leader, in his frame: heading of the direction (−dx, −dz)
+            d = hypot(dx, dz)
+            fc, fs = -dz / d, -dx / d
+            c, s = c + self.o.face_leader * (fc - c), s + self.o.face_leader * (fs - s)
+            n = max(hypot(c, s), 1e-9)
+            c, s = c / n, s / n
+        off = [dx, dz, c, s]
+        return off, _compose(leader_root.tolist(), off)
+
+    def keys(self, root, f_roots, l_roots, leader_root, offset, key_index):
+        """Key roots ``(K, 4)`` for the tracker at frames ``t − 1 + k``: the mapping's
+        predicted trajectory shape re-attached to the follower's current root
+        ``root`` (frame t − 1), eased towards the target placement.
+        ``key_index``: per key k ≥ 2 the mapping index of frame t + k − 1 … (see
+        runtime); key 1 uses the predicted first step."""
+        base = f_roots[0].tolist()
+        # one predicted step (frame t+1 -> t+2), taken for t-1 -> t and t -> t+1
+        step = relative_rows(np.array(base)[:, None], f_roots[1][:, None])[:, 0].tolist()
+        e1 = _compose(root, step)
+        e2 = _compose(e1, step)  # her frame t + 1 on the predicted path
+        ease = self.o.ease
+        out = [_blend(e1, _compose(leader_root.tolist(), offset), ease)]
+        rels = relative_rows(np.repeat(np.array(base)[:, None], len(key_index), axis=1),
+                             np.ascontiguousarray(f_roots[key_index].T)).T.tolist()
+        for j, (rel, idx) in enumerate(zip(rels, key_index)):
+            k = idx + 2  # frames after t - 1
+            w = 1.0 - (1.0 - ease) ** k
+            out.append(_blend(_compose(e2, rel), _compose(l_roots[min(idx, len(l_roots) - 1)].tolist(), offset), w))
+        return np.array(out)
+
+    def step(self, prev, proposal, target):
+        """The new root: ``proposal`` (the tracker's) pulled towards ``target``,
+        within the speed and turn limits from ``prev``."""
+        x, z, _, _ = _blend(proposal, target, self.o.pull)
+        _, _, c, s = _blend(proposal, target, self.o.pull_heading)
+        px, pz, pc, ps = prev
+        dx, dz = x - px, z - pz
+        d = hypot(dx, dz)
+        lim = self.o.max_speed / FPS
+        if d > lim:
+            x, z = px + dx * lim / d, pz + dz * lim / d
+        gx, gz = x - target[0], z - target[1]
+        g = hypot(gx, gz)
+        if g > self.o.max_gap:  # the leash: never farther than max_gap from her target
+            self.leashed += 1
+            x, z = target[0] + gx * self.o.max_gap / g, target[1] + gz * self.o.max_gap / g
+        turn = atan2(s * pc - c * ps, c * pc + s * ps)
+        tlim = self.o.max_turn / FPS
+        if abs(turn) > tlim:
+            a = atan2(ps, pc) + (tlim if turn > 0 else -tlim)
+            c, s = cos(a), sin(a)
+        return [x, z, c, s]
+
+
+def segment_distance(p0, p1, q0, q1):
+    """Closest distance between the segments p0–p1 and q0–q1 and the unit
+    direction (3,) from the q segment's closest point to the p segment's."""
+    u, v, w = p1 - p0, q1 - q0, p0 - q0
+    a, b, c, d, e = u @ u, u @ v, v @ v, u @ w, v @ w
+    den = a * c - b * b
+    sc = 0.0 if den < 1e-12 else min(max((b * e - c * d) / den, 0.0), 1.0)
+    tc = min(max((b * sc + e) / c, 0.0), 1.0) if c > 1e-12 else 0.0
+    sc = min(max((b * tc - d) / a, 0.0), 1.0) if a > 1e-12 else 0.0
+    diff = (p0 + sc * u) - (q0 + tc * v)
+    dist = float(np.sqrt(diff @ diff))
+    return dist, diff
+
+
+class Separation:
+    """Keep the follower's torso axis (pelvis to lower neck) at least
+    ``min_distance`` from the leader's, horizontally, by moving her."""
+
+    def __init__(self, min_distance: float):
+        self.min_distance = float(min_distance)
+
+    def push(self, leader_pos, follower_pos):
+        """The horizontal shift (dx, dz) that puts the follower's torso axis
+        ``min_distance`` from the leader's (0, 0 when it already is)."""
+        if self.min_distance <= 0:
+            return 0.0, 0.0
+        dist, diff = segment_distance(follower_pos[PELVIS], follower_pos[NECK], leader_pos[PELVIS], leader_pos[NECK])
+        if dist >= self.min_distance:
+            return 0.0, 0.0
+        hx, hz = float(diff[0]), float(diff[2])
+        n = hypot(hx, hz)
+        if n < 1e-6:  # axes crossing: away from the leader's pelvis
+            hx = float(follower_pos[PELVIS, 0] - leader_pos[PELVIS, 0])
+            hz = float(follower_pos[PELVIS, 2] - leader_pos[PELVIS, 2])
+            n = hypot(hx, hz)
+            if n < 1e-6:
+                hx, hz, n = 0.0, 1.0, 1.0
+        # horizontal move that opens the 3D gap to min_distance (the vertical part stays)
+        need = self.min_distance - dist
+        return hx / n * need * 1.05, hz / n * need * 1.05
+
+
+class HandHold:
+    """Hand holds of the duet: when one of the four leader/follower wrist
+    pairs is predicted close (under ``hold_on``; released over ``hold_off``),
+    the follower's wrist of that pair is pulled by her arm IK to ``hold_gap``
+    from the leader's wrist (the leader's wrist is his tracked hand) on the
+    side of her shoulder, blended in and out over ``hold_frames``. One pair
+    per follower hand; a hold her arm cannot reach fades out instead of
+    wrenching the shoulder."""
+
+    SHOULDERS = (JOINT_INDEX["lclavicle"], JOINT_INDEX["rclavicle"])
+
+    def __init__(self, options: FollowerOptions):
+        self.o = options
+        self.reset()
+
+    def reset(self):
+        self.weight = [0.0, 0.0]  # per follower hand
+        self.partner = [0, 0]  # leader wrist index (0 left, 1 right) per follower hand
+        self.active = [False, False]
+        self._offset = [None, None]
+
+    def targets(self, leader_pos, follower_pos, pred_dist, arm_length):
+        """Per follower hand a target (3,) or None. ``pred_dist (2, 2)``: the
+        mapping's predicted distance of leader wrist i to follower wrist j;
+        ``arm_length (2,)``: her arms (shoulder to wrist)."""
+        o = self.o
+        out = [None, None]
+        for j in (0, 1):
+            i = int(np.argmin(pred_dist[:, j]))
+            d = float(pred_dist[i, j])
+            if self.active[j]:
+                self.active[j] = d < o.hold_off
+            else:
+                self.active[j] = d < o.hold_on
+                self.partner[j] = i
+            step = 1.0 / max(o.hold_frames, 1)
+            self.weight[j] = min(1.0, self.weight[j] + step) if self.active[j] else max(0.0, self.weight[j] - step)
+            if self.weight[j] <= 0.0:
+                self._offset[j] = None
+                continue
+            lw = leader_pos[WRISTS[self.partner[j]]]
+            fw = follower_pos[WRISTS[j]]
+            sh = follower_pos[self.SHOULDERS[j]]
+            v = sh - lw
+            n = float(np.sqrt(v @ v))
+            goal = lw + (v / n * o.hold_gap if n > 1e-6 else 0.0)
+            # within reach of her shoulder: full weight up to 90 % of the arm, none past 100 %
+            reach = float(np.sqrt((goal - sh) @ (goal - sh))) / max(float(arm_length[j]), 1e-6)
+            w = self.weight[j] * min(max((1.0 - reach) / 0.1, 0.0), 1.0)
+            w = w * w * (3.0 - 2.0 * w)  # smoothstep
+            # her wrist's offset from her body follows the hold smoothly: the
+            # target is the previous frame's offset eased towards this one
+            off = w * (goal - fw)
+            prev = self._offset[j]
+            if prev is not None and o.hold_smooth > 0:
+                off = o.hold_smooth * prev + (1.0 - o.hold_smooth) * off
+            self._offset[j] = off
+            if w > 0.0:
+                out[j] = fw + off
+        return out
