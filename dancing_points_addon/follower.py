@@ -61,7 +61,7 @@ class FollowerOptions:
     max_speed: float = 2.5  # m/s, the root's horizontal speed
     max_turn: float = 6.0  # rad/s, the root's turn rate
     max_offset: float = 2.0  # m, the farthest target from the leader's root
-    max_gap: float = 0.5  # m, the farthest she may lag behind her target (a leash)
+    max_gap: float = 0.8  # m, the farthest she may lag behind her target (a leash)
     min_distance: float = 0.2  # m, torso axes (0: no separation)
     hold: bool = True  # hand holds by arm IK
     hold_on: float = 0.25  # m, predicted wrist distance under which a hold starts

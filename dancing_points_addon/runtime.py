@@ -164,6 +164,21 @@ class _Dancer:
                                     rot_to_local(rot_world[None], self.root[None]), contacts[None])[0]
 
 
+def limit_drift(pos, limit):
+    """Local poses ``(D, 31, 3)`` translated horizontally so that the head point
+    is at most ``limit`` metres from the root's origin (a tracker state that
+    has wandered off its root is brought back; a nearer one is untouched)."""
+    out = pos.copy()
+    for i in range(len(pos)):
+        x, z = float(pos[i, TRACKED[0], 0]), float(pos[i, TRACKED[0], 2])
+        d = sqrt(x * x + z * z)
+        if d > limit:
+            f = (d - limit) / d
+            out[i, :, 0] -= x * f
+            out[i, :, 2] -= z * f
+    return out
+
+
 def recentre(pos, rot):
     """Each local pose ``(D, 31, 3)``, ``(D, 31, 3, 3)`` moved into the frame its
     own head defines (SPEC root: the head's floor point, the head device's
@@ -198,8 +213,10 @@ def advance_together(dancers, key_roots, key_tracked, observed_roots, pulls, rec
         d.root = root
     pos, rot = pos[:, 0], rot[:, 0]
     for i, on in enumerate(recentre_pose):
-        if on:
+        if on is True:
             pos[i:i + 1], rot[i:i + 1] = recentre(pos[i:i + 1], rot[i:i + 1])
+        elif on is not False and on is not None:  # a distance: limit the drift to it
+            pos[i:i + 1] = limit_drift(pos[i:i + 1], float(on))
     con = np.minimum(np.maximum(con[:, 0], 0.0), 1.0)  # np.clip(con, 0, 1), cheaper
     for d, pose in zip(dancers, F.pose_features(pos, rot, con)):
         d.pose = pose
@@ -221,7 +238,7 @@ class Synthesizer:
     def __init__(self, model_dir: str | None = None, threads: int = 1, height: float | None = None,
                  foot_lock: bool = True, hand_ik: bool = True, nets: dict | None = None,
                  anchor_leader: bool = True, anchor_follower: float = 0.1, feedback=("rigid", "rigid"),
-                 follower: FollowerOptions | None = FollowerOptions(), recentre_pose=(False, True)):
+                 follower: FollowerOptions | None = FollowerOptions(), recentre_pose=(0.05, True)):
         model_dir = model_dir or MODEL_DIR
         if nets is None:
             nets = {k: OnnxNet(os.path.join(model_dir, f), threads) for k, f in MODEL_FILES.items()}
@@ -238,7 +255,7 @@ class Synthesizer:
         # the follower's placement state, torso separation and hand holds
         # (None: the earlier path, her root pulled towards the raw prediction)
         self.follower_options = follower
-        self.recentre_pose = (recentre_pose,) * 2 if isinstance(recentre_pose, bool) else tuple(recentre_pose)
+        self.recentre_pose = (recentre_pose,) * 2 if not isinstance(recentre_pose, (tuple, list)) else tuple(recentre_pose)
         # Rigid skeleton: the neck may turn but the spine may not stretch, so a
         # baked armature (fixed bone lengths) shows exactly this pose.
         self.ik_options = {"max_stretch": 0.0}

@@ -299,6 +299,8 @@ def build_take_collection(context, take30, name, frame_start=1, conv=bm.C, setti
         s.fps = NET_FPS
         s.t0 = float(take30.time[0])
         valid = take30.valid
+        store_samples(coll, bm.to_motion(bm.to_blender(take30.positions, conv)),
+                      bm.quat_to_motion(bm.quat_to_blender(take30.quats, conv)))
         objs = {}
         for d, dev in enumerate(DEVICES):
             obj = bpy.data.objects.new(DEVICE_OBJECT_NAMES[dev], None)
@@ -328,6 +330,43 @@ def build_take_collection(context, take30, name, frame_start=1, conv=bm.C, setti
     except Exception:
         _remove_collection(coll)
         raise
+
+
+SAMPLES_PROP = "dp_samples"  # the take's own 30 Hz samples, float64, motion space
+
+
+def store_samples(coll, positions, quats):
+    """Keep the take's 30 Hz samples at full precision beside its keyframes
+    (which Blender stores as float32): synthesis reads them back while the
+    empties still show them, so the bake is the command line's duet of the
+    same file, not that of a take rounded to float32."""
+    T = len(positions)
+    coll[SAMPLES_PROP] = np.concatenate([np.asarray(positions, np.float64).reshape(T, 9),
+                                         np.asarray(quats, np.float64).reshape(T, 12)], axis=1).ravel().tolist()
+
+
+def stored_samples(coll, positions, quats, tol=1e-4):
+    """The stored full-precision samples ``(positions, quats)`` when they still
+    agree with the take read from the empties (``positions (T, 3, 3)``,
+    ``quats (T, 3, 4)``, NaN where lost) within ``tol``; else None (the
+    user edited the animation: the keyframes are the take)."""
+    raw = coll.get(SAMPLES_PROP)
+    T = len(positions)
+    if raw is None or len(raw) != T * 21:
+        return None
+    a = np.array(raw.to_list() if hasattr(raw, "to_list") else raw, dtype=np.float64).reshape(T, 21)
+    pos, q = a[:, :9].reshape(T, 3, 3), a[:, 9:].reshape(T, 3, 4)
+    lost = ~np.isfinite(positions).all(-1)
+    if not np.array_equal(lost, ~np.isfinite(pos).all(-1)):
+        return None
+    ok = ~lost
+    if ok.any():
+        if np.max(np.abs(pos[ok] - positions[ok])) > tol:
+            return None
+        dq = np.minimum(np.abs(q[ok] - quats[ok]).max(-1), np.abs(q[ok] + quats[ok]).max(-1))
+        if np.max(dq) > tol:
+            return None
+    return pos, q
 
 
 def _remove_collection(coll):
@@ -403,6 +442,9 @@ def take_from_collection(context, coll):
         quats[lost, d] = np.nan
     if not np.isfinite(pos).all(-1).any():
         raise TakeError("take '{:s}' has no tracked samples".format(coll.name))
+    exact = stored_samples(coll, pos, quats)
+    if exact is not None:
+        pos, quats = exact
     time = s.t0 + np.arange(T) / float(s.fps or NET_FPS)
     meta = {}
     if s.height > 0:

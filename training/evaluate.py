@@ -263,7 +263,7 @@ def noise_robustness(factory, segments, tmpdir, sigma=0.001, draws=1, seed=0):
 def run_system(factory, segments, tmpdir, fixed=None):
     runs = []
     t0 = time.time()
-    frames = 0
+    frames = leashed = 0
     for seg in segments:
         path = os.path.join(tmpdir, f"lead_test_{seg['take']}.csv")
         take = take_from_motion(seg["lead60"])
@@ -273,8 +273,11 @@ def run_system(factory, segments, tmpdir, fixed=None):
         if fixed is not None:
             (pl, _), (pf, _) = fixed.run(take)
         else:
-            duet = factory().synthesize(take)
+            synth = factory()
+            duet = synth.synthesize(take)
             pl, pf = duet.leader_positions, duet.follower_positions
+            placement = getattr(synth, "_placement", None)
+            leashed += placement.leashed if placement is not None else 0
         tl, tf = seg["lead"][0], seg["fol"][0]
         n = min(len(pl), len(tl))
         mask = np.arange(n) / F.FPS >= SCORE_FROM
@@ -282,7 +285,7 @@ def run_system(factory, segments, tmpdir, fixed=None):
                      "lead_len": seg["lead_len"], "fol_len": seg["fol_len"],
                      "input_head": tl[:n, TRACKED[0]]})
         frames += n
-    return runs, {"seconds": time.time() - t0, "frames": frames}
+    return runs, {"seconds": time.time() - t0, "frames": frames, "leash_frames": leashed}
 
 
 def main(argv=None):
@@ -321,10 +324,15 @@ def main(argv=None):
                 cls = PastInputSynth if tag == "pastinput" else Synthesizer
                 if tag == "pastinput" and "follower" in partial[tag]:
                     cls = type("PastInputLeaderSynth", (PastInputSynth,), {"follower_past": False})
+                # (b) ablates the mapping for the follower too: her placement state,
+                # separation and holds (built on the mapping's prediction) go with it
+                kw = {"follower": None} if tag == "pastinput" and "follower" not in partial[tag] else {}
                 systems[{"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}[tag]] = \
-                    (lambda a=abl, c=cls: c(nets=a, foot_lock=lock))
+                    (lambda a=abl, c=cls, kw=kw: c(nets=a, foot_lock=lock, **kw))
     if not args.only_full:
-        systems["(c) follower from leader trajectory"] = lambda: LeaderTrajSynth(nets=nets, foot_lock=lock)
+        # (c): no follower mapping, so none of the placement built on it either
+        systems["(c) follower from leader trajectory"] = lambda: LeaderTrajSynth(nets=nets, foot_lock=lock,
+                                                                                 follower=None)
     names = {"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
