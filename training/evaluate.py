@@ -231,6 +231,16 @@ def cut_last(runs, seconds=2.0):
     return out
 
 
+def segment_take(seg, tmpdir):
+    """The leader's frames of a segment written as a take file (SPEC §3, native
+    60 Hz, time from 0) and read back, as SPEC §6 asks."""
+    path = os.path.join(tmpdir, f"lead_{seg['take']}.csv")
+    take = take_from_motion(seg["lead60"])
+    take.time = take.time - take.time[0]
+    write_take(path, take)
+    return read_take(path)
+
+
 def noise_robustness(factory, segments, tmpdir, sigma=0.001, draws=1, seed=0):
     """Per-frame change of each dancer (mean over joints, cm) when Gaussian noise
     of ``sigma`` metres is added to every tracked position of the take: mean
@@ -238,11 +248,7 @@ def noise_robustness(factory, segments, tmpdir, sigma=0.001, draws=1, seed=0):
     rng = np.random.default_rng(seed)
     diffs = {"leader": [], "follower": []}
     for seg in segments:
-        path = os.path.join(tmpdir, f"lead_noise_{seg['take']}.csv")
-        take = take_from_motion(seg["lead60"])
-        take.time = take.time - take.time[0]
-        write_take(path, take)
-        take = read_take(path)
+        take = segment_take(seg, tmpdir)
         clean = factory().synthesize(take)
         for _ in range(draws):
             noisy = type(take)(take.time, take.positions + rng.normal(0.0, sigma, take.positions.shape),
@@ -265,11 +271,7 @@ def run_system(factory, segments, tmpdir, fixed=None):
     t0 = time.time()
     frames = leashed = 0
     for seg in segments:
-        path = os.path.join(tmpdir, f"lead_test_{seg['take']}.csv")
-        take = take_from_motion(seg["lead60"])
-        take.time = take.time - take.time[0]
-        write_take(path, take)
-        take = read_take(path)
+        take = segment_take(seg, tmpdir)
         if fixed is not None:
             (pl, _), (pf, _) = fixed.run(take)
         else:
