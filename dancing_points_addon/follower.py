@@ -35,16 +35,21 @@ hold, blended in and out.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from math import atan2, cos, hypot, sin, sqrt
+from math import atan2, cos, hypot, sin
 
 import numpy as np
 
-from .representation import relative_rows
+from .features import FPS
+from .metrics import WRISTS
+from .representation import blend_root, relative_rows, root_compose, segments_gap
 from .skeleton import JOINT_INDEX
 
-FPS = 30.0
 PELVIS, NECK = JOINT_INDEX["root"], JOINT_INDEX["lowerneck"]
-WRISTS = (JOINT_INDEX["lwrist"], JOINT_INDEX["rwrist"])
+
+
+def _compose(ref, rel):
+    """:func:`~.representation.root_compose` of two roots given as lists."""
+    return root_compose(np.array(ref), np.array(rel)).tolist()
 
 
 @dataclass(frozen=True)
@@ -71,21 +76,6 @@ class FollowerOptions:
     hold_smooth: float = 0.7  # exponential smoothing of the hold's pull on her wrist
 
 
-def _blend(a, b, w):
-    """Root ``w`` of the way from ``a`` to ``b`` (4 floats; heading normalised)."""
-    x, z, c, s = (p + w * (q - p) for p, q in zip(a, b))
-    n = max(hypot(c, s), 1e-9)
-    return [x, z, c / n, s / n]
-
-
-def _compose(ref, rel):
-    x0, z0, c, s = ref
-    r0, r1, cr, sr = rel
-    co, so = cr * c - sr * s, sr * c + cr * s
-    n = 1.0 / max(sqrt(co * co + so * so), 1e-300)
-    return [x0 + c * r0 + s * r1, z0 - s * r0 + c * r1, co * n, so * n]
-
-
 class Placement:
     """The follower's root as a state (see the module docstring)."""
 
@@ -106,7 +96,9 @@ class Placement:
         if prev is not None:
             arrays = tuple(b * np.concatenate([p[1:], p[-1:]]) + (1.0 - b) * a for p, a in zip(prev, arrays))
         self._prev = arrays
-        return arrays
+        roots = arrays[0].copy()  # heading rows back to unit length
+        roots[:, 2:] /= np.linalg.norm(roots[:, 2:], axis=-1, keepdims=True)
+        return (roots,) + tuple(arrays[1:])
 
     def target(self, leader_root, l_roots, f_roots):
         """The mapping's placement of the follower relative to the leader, averaged
@@ -142,20 +134,20 @@ class Placement:
         e1 = _compose(root, step)
         e2 = _compose(e1, step)  # her frame t + 1 on the predicted path
         ease = self.o.ease
-        out = [_blend(e1, _compose(leader_root.tolist(), offset), ease)]
+        out = [blend_root(e1, _compose(leader_root.tolist(), offset), ease)]
         rels = relative_rows(np.repeat(np.array(base)[:, None], len(key_index), axis=1),
                              np.ascontiguousarray(f_roots[key_index].T)).T.tolist()
-        for j, (rel, idx) in enumerate(zip(rels, key_index)):
+        for rel, idx in zip(rels, key_index):
             k = idx + 2  # frames after t - 1
             w = 1.0 - (1.0 - ease) ** k
-            out.append(_blend(_compose(e2, rel), _compose(l_roots[min(idx, len(l_roots) - 1)].tolist(), offset), w))
+            out.append(blend_root(_compose(e2, rel), _compose(l_roots[min(idx, len(l_roots) - 1)].tolist(), offset), w))
         return np.array(out)
 
     def step(self, prev, proposal, target):
         """The new root: ``proposal`` (the tracker's) pulled towards ``target``,
         within the speed and turn limits from ``prev``."""
-        x, z, _, _ = _blend(proposal, target, self.o.pull)
-        _, _, c, s = _blend(proposal, target, self.o.pull_heading)
+        x, z, _, _ = blend_root(proposal, target, self.o.pull)
+        _, _, c, s = blend_root(proposal, target, self.o.pull_heading)
         px, pz, pc, ps = prev
         dx, dz = x - px, z - pz
         d = hypot(dx, dz)
@@ -175,20 +167,6 @@ class Placement:
         return [x, z, c, s]
 
 
-def segment_distance(p0, p1, q0, q1):
-    """Closest distance between the segments p0–p1 and q0–q1 and the unit
-    direction (3,) from the q segment's closest point to the p segment's."""
-    u, v, w = p1 - p0, q1 - q0, p0 - q0
-    a, b, c, d, e = u @ u, u @ v, v @ v, u @ w, v @ w
-    den = a * c - b * b
-    sc = 0.0 if den < 1e-12 else min(max((b * e - c * d) / den, 0.0), 1.0)
-    tc = min(max((b * sc + e) / c, 0.0), 1.0) if c > 1e-12 else 0.0
-    sc = min(max((b * tc - d) / a, 0.0), 1.0) if a > 1e-12 else 0.0
-    diff = (p0 + sc * u) - (q0 + tc * v)
-    dist = float(np.sqrt(diff @ diff))
-    return dist, diff
-
-
 class Separation:
     """Keep the follower's torso axis (pelvis to lower neck) at least
     ``min_distance`` from the leader's, horizontally, by moving her."""
@@ -201,7 +179,8 @@ class Separation:
         ``min_distance`` from the leader's (0, 0 when it already is)."""
         if self.min_distance <= 0:
             return 0.0, 0.0
-        dist, diff = segment_distance(follower_pos[PELVIS], follower_pos[NECK], leader_pos[PELVIS], leader_pos[NECK])
+        diff = segments_gap(follower_pos[PELVIS], follower_pos[NECK], leader_pos[PELVIS], leader_pos[NECK])
+        dist = float(np.sqrt(diff @ diff))
         if dist >= self.min_distance:
             return 0.0, 0.0
         hx, hz = float(diff[0]), float(diff[2])

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .representation import CONTACT_HEIGHT, CONTACT_SPEED, floor_levels, foot_speeds
+from .representation import CONTACT_HEIGHT, CONTACT_SPEED, floor_levels, foot_speeds, segments_gap
 from .skeleton import FEET, HIPS, TRACKED, JOINT_INDEX
 
 SKATE_HEIGHT = 0.025
@@ -100,17 +100,8 @@ def torso_distance(a, b):
     """Per frame ``(T,)``: closest distance between the two dancers' torso axes
     (the segment from the pelvis to the lower neck, ends of ``root`` and
     ``lowerneck``)."""
-    p0, p1 = a[:, 0], a[:, JOINT_INDEX["lowerneck"]]
-    q0, q1 = b[:, 0], b[:, JOINT_INDEX["lowerneck"]]
-    u, v, w = p1 - p0, q1 - q0, p0 - q0
-    A, B, C = (u * u).sum(-1), (u * v).sum(-1), (v * v).sum(-1)
-    D, E = (u * w).sum(-1), (v * w).sum(-1)
-    den = A * C - B * B
-    s = np.where(den > 1e-12, np.clip((B * E - C * D) / np.maximum(den, 1e-12), 0.0, 1.0), 0.0)
-    t = np.clip((B * s + E) / np.maximum(C, 1e-12), 0.0, 1.0)
-    s = np.clip((B * t - D) / np.maximum(A, 1e-12), 0.0, 1.0)
-    diff = (p0 + s[:, None] * u) - (q0 + t[:, None] * v)
-    return np.linalg.norm(diff, axis=-1)
+    n = JOINT_INDEX["lowerneck"]
+    return np.linalg.norm(segments_gap(a[:, 0], a[:, n], b[:, 0], b[:, n]), axis=-1)
 
 
 def interpenetration(lead, follow, mask, limit=0.15):

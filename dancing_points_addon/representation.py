@@ -190,6 +190,27 @@ def compose_rows(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
     return out
 
 
+def blend_root(a, b, w: float) -> list:
+    """Root ``w`` of the way from ``a`` to ``b`` (4 numbers each; position
+    linear, heading normalised), as a list of plain floats."""
+    x, z, c, s = (p + w * (q - p) for p, q in zip(a, b))
+    n = max(sqrt(c * c + s * s), 1e-9)
+    return [x, z, c / n, s / n]
+
+
+def segments_gap(p0, p1, q0, q1) -> np.ndarray:
+    """Vectors ``(…, 3)`` from the closest point of the segments q0–q1 to that of
+    the segments p0–p1 (their closest distance is the norm), all ``(…, 3)``."""
+    u, v, w = p1 - p0, q1 - q0, p0 - q0
+    A, B, C = (u * u).sum(-1), (u * v).sum(-1), (v * v).sum(-1)
+    D, E = (u * w).sum(-1), (v * w).sum(-1)
+    den = A * C - B * B
+    s = np.where(den > 1e-12, np.clip((B * E - C * D) / np.maximum(den, 1e-12), 0.0, 1.0), 0.0)
+    t = np.clip((B * s + E) / np.maximum(C, 1e-12), 0.0, 1.0)
+    s = np.clip((B * t - D) / np.maximum(A, 1e-12), 0.0, 1.0)
+    return (p0 + s[..., None] * u) - (q0 + t[..., None] * v)
+
+
 def floor_levels(foot_heights: np.ndarray) -> np.ndarray:
     """Per-point floor level ``(4,)``: 5th percentile of the height over a take."""
     return np.nanpercentile(foot_heights, FLOOR_PERCENTILE, axis=0)

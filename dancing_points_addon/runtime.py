@@ -21,9 +21,9 @@ from math import sqrt
 import numpy as np
 
 from . import features as F
-from .follower import WRISTS, FollowerOptions, HandHold, Placement, Separation
+from .follower import FollowerOptions, HandHold, Placement, Separation
 from .pose import PoseRecovery, bone_vectors_from_pose
-from .representation import (DEVICE_FROM_HEAD, pose_to_world, root_compose, root_from_head, root_relative, rot6d_to_matrix,
+from .representation import (DEVICE_FROM_HEAD, blend_root, pose_to_world, root_compose, root_from_head, root_relative, rot6d_to_matrix,
                              rot_to_local, to_local, to_world)
 from .skeleton import FEET, HEAD_BONE, JOINT_INDEX, JOINT_NAMES, TRACKED
 
@@ -53,13 +53,6 @@ def _head_scale(heights) -> float:
     users 1.35–2.10 m tall."""
     s = TRAIN_HEAD_HEIGHT / float(np.percentile(heights, 90))
     return float(np.clip(s, TRAIN_HEIGHT / 2.10, TRAIN_HEIGHT / 1.35))
-
-
-def _blend_root(a, b, w):
-    """Root ``w`` of the way from ``a`` to ``b`` (position linear, heading normalised)."""
-    x, z, c, s = (p + w * (q - p) for p, q in zip(a.tolist(), b.tolist()))  # 4 numbers: plain floats
-    n = max(float(np.hypot(c, s)), 1e-9)
-    return np.array([x, z, c / n, s / n])
 
 
 class OnnxNet:
@@ -209,7 +202,7 @@ def advance_together(dancers, key_roots, key_tracked, observed_roots, pulls, rec
         elif callable(root):  # a placement given the tracker's own next root
             root = np.array(root(d.root.tolist(), root_compose(d.root, r).tolist()))
         if pull is not None and pull[1] > 0:
-            root = _blend_root(root, pull[0], pull[1])
+            root = np.array(blend_root(root.tolist(), pull[0].tolist(), pull[1]))
         d.root = root
     pos, rot = pos[:, 0], rot[:, 0]
     for i, on in enumerate(recentre_pose):
@@ -407,11 +400,8 @@ class Synthesizer:
         placement = self._placement
         if placement is not None:
             f_roots, f_tr = placement.smooth(f_roots, f_tr)
-            if placement.o.smooth > 0:  # heading rows back to unit length
-                f_roots = f_roots.copy()
-                f_roots[:, 2:] /= np.linalg.norm(f_roots[:, 2:], axis=-1, keepdims=True)
             self._leader_root = root
-            self._fol_target = self._follower_target(root, l_roots, f_roots)
+            self._fol_target = placement.target(root, l_roots, f_roots)
         if self.t == 0:
             self.follower.place(self._fol_target[1] if placement is not None else f_roots[0])
             self.prev_follower = (f_roots[0], f_tr[0])
@@ -515,10 +505,6 @@ class Synthesizer:
             return (self._placement.keys(self.follower.root.tolist(), f_roots, l_roots, self._leader_root, off,
                                          self._OFF), tracked)
         return np.concatenate([self.prev_follower[0][None], f_roots.take(self._OFF, axis=0)]), tracked
-
-    def _follower_target(self, leader_root, l_roots, f_roots):
-        """The follower's placement target: (offset from the leader's root, world root)."""
-        return self._placement.target(leader_root, l_roots, f_roots)
 
     # -- a whole take ----------------------------------------------------------
     def synthesize(self, take, progress=None) -> Duet:
