@@ -24,7 +24,8 @@ import time
 
 import numpy as np
 
-from .runtime import MODEL_FILES, OnnxNet, Synthesizer
+from .nets import MODEL_FILES, OnnxNet, resolve_model_dir
+from .runtime import SynthesisOptions, Synthesizer
 
 SAMPLE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "samples", "sample_take.csv")
 
@@ -107,25 +108,18 @@ class _Floor:
         return times
 
 
-def compute_floor(model_dir, repeats=2000):
-    """Seconds per duet frame (median) of the bare mat-vec products, and the MACs."""
-    f = _Floor(model_dir)
-    return float(np.median(f.time(repeats))), f.macs
-
-
 def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True, hand_ik=True, blocks=10):
     """Time ``frames`` duet frames of the loop and as many passes of the compute
     floor, interleaved in ``blocks`` (a shared machine's speed drifts: the ratio
     compares the two under the same conditions)."""
-    from .runtime import MODEL_DIR
     from .resample import resample_take
-    from .take import read_take
+    from .formats.take import read_take
 
-    model_dir = model_dir or MODEL_DIR
+    model_dir = resolve_model_dir(model_dir)
     clocks = {"networks": [0.0], "recovery": [0.0]}
     nets = {k: _Timed(OnnxNet(os.path.join(model_dir, f), threads), clocks["networks"])
             for k, f in MODEL_FILES.items()}
-    synth = _TimedSynth(nets=nets, foot_lock=foot_lock, hand_ik=hand_ik, clocks=clocks)
+    synth = _TimedSynth(SynthesisOptions(foot_lock=foot_lock, hand_ik=hand_ik), nets=nets, clocks=clocks)
     take = resample_take(read_take(take_path))
     valid = take.valid
     floor = _Floor(model_dir)

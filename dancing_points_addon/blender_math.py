@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from .rotations import matrix_to_quat, quat_to_matrix
-from .skeleton import JOINT_NAMES, PARENTS
+from .skeleton import JOINT_NAMES, PARENTS, rest_joints
 
 # Motion space (Y up) -> Blender (Z up): (x, y, z) -> (x, -z, y).
 C = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -105,15 +105,6 @@ def fill_gaps(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- rig reading
 
-def rest_relative_rotation(pose_world: np.ndarray, rest_world: np.ndarray) -> np.ndarray:
-    """Global rotation relative to the rest pose from world matrices ``(…, 4, 4)``
-    or ``(…, 3, 3)`` of a posed and a rest bone: ``G = Rpose · Rrestᵀ``
-    (scale removed from both). Independent of the bones' local axes (roll)."""
-    a = _unscaled(np.asarray(pose_world, dtype=np.float64)[..., :3, :3])
-    b = _unscaled(np.asarray(rest_world, dtype=np.float64)[..., :3, :3])
-    return a @ np.swapaxes(b, -1, -2)
-
-
 def _unscaled(m):
     return m / np.linalg.norm(m, axis=-2, keepdims=True)
 
@@ -129,15 +120,6 @@ def unit_scale_for_height(height: float, candidates=None, typical: float = 1.7) 
 
 
 # --------------------------------------------------------------------------- skeleton
-
-def rest_joints(bone_vectors: np.ndarray) -> np.ndarray:
-    """Rest joint positions ``(31, 3)`` (SPEC §2: ends of the bones), root at the origin."""
-    bv = np.asarray(bone_vectors, dtype=np.float64)
-    ends = np.zeros((N_BONES, 3))
-    for n in range(1, N_BONES):
-        ends[n] = ends[PARENTS[n]] + bv[n]
-    return ends
-
 
 def armature_rest(bone_vectors: np.ndarray, root_length: float = ROOT_BONE_LENGTH):
     """Edit-bone heads and tails ``(31, 3)`` each, in Blender space, of the rest pose."""
@@ -194,19 +176,6 @@ def pose_channels(positions: np.ndarray, rotations: np.ndarray, rest_rot: np.nda
     root_b = to_blender(positions[:, 0])
     loc = (root_b - rest_heads[0]) @ B[0]  # B0ᵀ · (p − head)
     return quats, loc
-
-
-def bone_heads_tails(positions: np.ndarray, rotations: np.ndarray,
-                     root_length: float = ROOT_BONE_LENGTH):
-    """Posed bone heads and tails ``(T, 31, 3)`` in Blender space, as the armature
-    shows them (root: tail = head + R_root · up · root_length)."""
-    pb = to_blender(positions)
-    heads = pb[:, _PAR].copy()
-    heads[:, 0] = pb[:, 0]
-    tails = pb.copy()
-    rb0 = rot_to_blender(rotations[:, 0])
-    tails[:, 0] = pb[:, 0] + rb0[:, :, 2] * root_length
-    return heads, tails
 
 
 def skin_transforms(positions: np.ndarray, rotations: np.ndarray, bone_vectors: np.ndarray) -> np.ndarray:

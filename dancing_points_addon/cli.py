@@ -1,7 +1,9 @@
 """Command line (SPEC §7): ``python -m dancing_points_addon <command> ...``.
 
 Each subcommand is one ``cmd_<name>(args) -> int`` function plus one
-``_parser_<name>(subparsers)`` block registered in :data:`PARSERS`.
+``_parser_<name>(subparsers)`` block registered in :data:`PARSERS`. The option
+types and the one-line parser are :mod:`.argtypes` (shared with :mod:`.batch`,
+whose options the ``batch`` subcommand takes).
 
 Errors never show a traceback: bad input (an :class:`InputError`, a bad option)
 prints one line ``error: <file>:<line>: <what>`` on stderr and exits with 2;
@@ -12,52 +14,16 @@ ever left at an output path and an existing file survives a failed run.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 
-from .errors import InputError, one_line
+from .argtypes import Parser, UsageError, height_metres, positive_float, positive_int
+from .errors import InputError, UserError, error_message, one_line
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT = 0, 1, 2
 
 
-class UsageError(Exception):
-    """A bad command line (reported like bad input: one line, exit 2)."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # argparse would print the usage too: keep it one line
-        raise UsageError(f"{self.prog}: {message}")
-
-
-# --------------------------------------------------------------------------- option types
-
-def positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return v
-
-
-def positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
-    return v
-
-
-def height_metres(text: str) -> float:
-    v = positive_float(text)
-    if not 0.5 <= v <= 3.0:
-        raise argparse.ArgumentTypeError(f"must be a height in metres between 0.5 and 3.0, got {text!r}")
-    return v
-
+# --------------------------------------------------------------------------- shared options
 
 def add_input_arguments(p: argparse.ArgumentParser) -> None:
     """INPUT and the options every input-reading command takes (SPEC §7)."""
@@ -84,14 +50,14 @@ def check_output_path(path) -> None:
 
 
 def load_input_from_args(args):
-    from .take import load_input
+    from .formats.take import load_input
     return load_input(args.input, asf=args.asf, input_fps=args.input_fps, height=args.height)
 
 
 # --------------------------------------------------------------------------- extract
 
 def cmd_extract(args) -> int:
-    from .take import write_take
+    from .formats.take import write_take
 
     check_output_path(args.output)
     take = load_input_from_args(args)
@@ -117,7 +83,7 @@ def _parser_extract(sub) -> None:
 def cmd_synthesize(args) -> int:
     import time
 
-    from .runtime import Synthesizer, duet_motions, save_npz
+    from .runtime import SynthesisOptions, Synthesizer, duet_motions, save_npz
 
     out = args.output
     check_output_path(out)
@@ -127,15 +93,15 @@ def cmd_synthesize(args) -> int:
         raise InputError(out, "output must end in .npz or .bvh")
     take = load_input_from_args(args)
     t0 = time.perf_counter()
-    synth = Synthesizer(model_dir=args.models, threads=args.threads, height=args.height or take.height,
-                        foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik)
+    synth = Synthesizer(SynthesisOptions(models=args.models, threads=args.threads, height=args.height or take.height,
+                                         foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik))
     duet = synth.synthesize(take)
     if ext == ".npz":
         save_npz(duet, out)
         written = [out]
     else:
-        from .bvh import bvh_text
-        from .take import atomic_output
+        from .formats.bvh import bvh_text
+        from .formats.take import atomic_output
 
         written = []
         try:
@@ -218,40 +184,15 @@ def _parser_batch(sub) -> None:
     p.set_defaults(func=cmd_batch)
 
 
-# --------------------------------------------------------------------------- build-extension
-
-def cmd_build_extension(args) -> int:
-    from .build_extension import PLATFORMS, build
-
-    platforms = args.platform or list(PLATFORMS)
-    bad = [p for p in platforms if p not in PLATFORMS]
-    if bad:
-        raise InputError(None, f"unknown platform {bad[0]!r} (one of {', '.join(PLATFORMS)})")
-    zips = build(args.output, wheels=not args.no_wheels, platforms=platforms)
-    print("\n".join(zips))
-    return EXIT_OK
-
-
-def _parser_build_extension(sub) -> None:
-    p = sub.add_parser("build-extension", help="build the extension zips with Blender's tool",
-                       description="Build the extension with Blender's own 'extension build', one zip per "
-                                   "platform with the ONNX Runtime wheels bundled, and validate each zip.")
-    p.add_argument("-o", "--output", default="dist", metavar="DIR", help="output folder (default dist)")
-    p.add_argument("--platform", action="append", metavar="NAME",
-                   help="linux-x64, windows-x64 or macos-arm64 (repeatable; default all three)")
-    p.add_argument("--no-wheels", action="store_true", help="one zip without bundled wheels")
-    p.set_defaults(func=cmd_build_extension)
-
-
 # --------------------------------------------------------------------------- main
 
-PARSERS = [_parser_extract, _parser_synthesize, _parser_benchmark, _parser_batch, _parser_build_extension]
+PARSERS = [_parser_extract, _parser_synthesize, _parser_benchmark, _parser_batch]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="python -m dancing_points_addon",
+    parser = Parser(prog="python -m dancing_points_addon",
                      description="Dancing Points: a salsa duet from three tracked points.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     sub.required = True
     for add in PARSERS:
         add(sub)
@@ -263,13 +204,10 @@ def main(argv=None) -> int:
     try:
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
-    except UsageError as exc:
-        print(f"error: {one_line(exc)}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except InputError as exc:
-        if debug:
+    except UserError as exc:
+        if debug and not isinstance(exc, UsageError):
             raise
-        print(f"error: {one_line(exc)}", file=sys.stderr)
+        print(f"error: {error_message(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)

@@ -1,8 +1,19 @@
-"""The one error type that user-facing code catches and prints as one line."""
+"""User-facing errors: one base class, one formatter.
+
+Every error whose message is written for the user (bad input, a rig that cannot
+be retargeted, missing models, ...) is a :class:`UserError`: the command line,
+the batch report and the Blender operators show its message as it is, on one
+line, without a traceback. Anything else is unexpected and is shown with its
+type by :func:`error_message`.
+"""
 from __future__ import annotations
 
 
-class InputError(ValueError):
+class UserError(Exception):
+    """An error whose message is the one line to show the user."""
+
+
+class InputError(UserError, ValueError):
     """Bad user input: names the file, the line (when known) and what is wrong."""
 
     def __init__(self, path, message: str, line: int | None = None):
@@ -18,6 +29,18 @@ class InputError(ValueError):
 def one_line(text) -> str:
     """``text`` (or an exception's message) with all whitespace runs as one space."""
     return " ".join(str(text).split())
+
+
+def error_message(exc: BaseException, failed: str = "") -> str:
+    """The one line to show for ``exc``: a :class:`UserError`'s message as it is;
+    for anything else its type and the first line of its message, after
+    ``failed`` (e.g. ``"retarget failed"``) when given."""
+    text = str(exc).strip()
+    if isinstance(exc, UserError):
+        return one_line(text) or type(exc).__name__
+    first = text.splitlines()[0].strip() if text else ""
+    detail = f"{type(exc).__name__}: {first}" if first else type(exc).__name__
+    return f"{failed}: {detail}" if failed else detail
 
 
 def read_text(path) -> str:

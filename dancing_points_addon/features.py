@@ -37,6 +37,26 @@ TRACK_IN = POSE_DIM + len(TRACK_KEYS) * 13
 KEY_OUT = 4 + N_JOINTS * 3 + N_JOINTS * 6 + 4
 TRACK_OUT = len(TRACK_KEYS) * KEY_OUT
 
+# Named slices of a pose feature vector (POSE_DIM) and of one key of the
+# tracking output (KEY_OUT): use these, never the numbers.
+POSE_POS = slice(0, N_JOINTS * 3)                                   # 0:93 local joint positions
+POSE_ROT = slice(POSE_POS.stop, POSE_POS.stop + N_JOINTS * 6)      # 93:279 6D rotations
+POSE_CON = slice(POSE_ROT.stop, POSE_ROT.stop + 4)                 # 279:283 foot contacts
+KEY_ROOT = slice(0, 4)                                              # root relative to F0
+KEY_POS = slice(KEY_ROOT.stop, KEY_ROOT.stop + N_JOINTS * 3)        # 4:97
+KEY_ROT = slice(KEY_POS.stop, KEY_POS.stop + N_JOINTS * 6)          # 97:283
+KEY_CON = slice(KEY_ROT.stop, KEY_ROT.stop + 4)                     # 283:287
+
+
+def pose_positions(pose: np.ndarray) -> np.ndarray:
+    """Local joint positions ``(..., 31, 3)`` of pose features ``(..., POSE_DIM)``."""
+    return pose[..., POSE_POS].reshape(pose.shape[:-1] + (N_JOINTS, 3))
+
+
+def pose_rotations(pose: np.ndarray) -> np.ndarray:
+    """Local joint rotation matrices ``(..., 31, 3, 3)`` of pose features."""
+    return rot6d_to_matrix(pose[..., POSE_ROT].reshape(pose.shape[:-1] + (N_JOINTS, 6)))
+
 
 def layout() -> dict:
     """Feature layout, written into the ONNX metadata."""
@@ -89,9 +109,9 @@ def pose_features(pos_local, rot_local, contacts) -> np.ndarray:
     """``(B, 31, 3)``, ``(B, 31, 3, 3)``, ``(B, 4)`` -> ``(B, POSE_DIM)``."""
     B = len(pos_local)
     out = np.empty((B, POSE_DIM))
-    out[:, :93] = pos_local.reshape(B, -1)
-    out[:, 93:279] = rot6d(rot_local).reshape(B, -1)
-    out[:, 279:] = contacts.reshape(B, 4)
+    out[:, POSE_POS] = pos_local.reshape(B, -1)
+    out[:, POSE_ROT] = rot6d(rot_local).reshape(B, -1)
+    out[:, POSE_CON] = contacts.reshape(B, 4)
     return out
 
 
@@ -121,12 +141,12 @@ def split_tracking_output(y: np.ndarray):
     local rotations ``(B,K,31,3,3)``, contacts ``(B,K,4)``."""
     B = len(y)
     y = y.reshape(B, -1, KEY_OUT)  # all keys (training) or only the first (exported)
-    rel = y[..., :4].copy()
+    rel = y[..., KEY_ROOT].copy()
     h = rel[..., 2:4]
     h /= np.maximum(np.sqrt(np.einsum("...i,...i->...", h, h)), 1e-9)[..., None]
-    pos = y[..., 4:4 + 93].reshape(B, -1, N_JOINTS, 3)
-    rot = rot6d_to_matrix(y[..., 97:97 + 186].reshape(B, -1, N_JOINTS, 6))
-    con = y[..., 283:287]
+    pos = y[..., KEY_POS].reshape(B, -1, N_JOINTS, 3)
+    rot = rot6d_to_matrix(y[..., KEY_ROT].reshape(B, -1, N_JOINTS, 6))
+    con = y[..., KEY_CON]
     return rel, pos, rot, con
 
 

@@ -40,9 +40,8 @@ from math import atan2, cos, hypot, sin
 import numpy as np
 
 from .features import FPS
-from .metrics import WRISTS
 from .representation import blend_root, relative_rows, root_compose, segments_gap
-from .skeleton import JOINT_INDEX
+from .skeleton import JOINT_INDEX, WRISTS
 
 PELVIS, NECK = JOINT_INDEX["root"], JOINT_INDEX["lowerneck"]
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from .rotations import matrix_to_quat, quat_slerp, quat_to_matrix
 from .skeleton import Motion
-from .take import Take
+from .formats.take import Take
 
 NET_FPS = 30.0
 _EPS = 1e-9  # relative tolerance: an output time this close to an input row is on it

@@ -84,6 +84,21 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     return out
 
 
+def quat_to_matrix_one(q) -> np.ndarray:
+    """One quaternion ``(w, x, y, z)`` (any length) to a rotation matrix: the
+    frame loop's path, on Python floats (2 µs against 18 µs for
+    :func:`quat_to_matrix` on one quaternion). It normalises through
+    ``2 / |q|²`` where :func:`quat_to_matrix` divides by ``|q|`` first: the two
+    agree to the last bit or two, not bit for bit, so each keeps the callers
+    whose shipped outputs it made (the runtime: this one; the file readers and
+    the Blender conversions: the vectorised one)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64).tolist()
+    n = 2.0 / (w * w + x * x + y * y + z * z)
+    return np.array([[1 - n * (y * y + z * z), n * (x * y - w * z), n * (x * z + w * y)],
+                     [n * (x * y + w * z), 1 - n * (x * x + z * z), n * (y * z - w * x)],
+                     [n * (x * z - w * y), n * (y * z + w * x), 1 - n * (x * x + y * y)]])
+
+
 def matrix_to_quat(m: np.ndarray) -> np.ndarray:
     """Rotation matrices to unit quaternions ``(w, x, y, z)`` with w >= 0."""
     m = np.asarray(m, dtype=np.float64)

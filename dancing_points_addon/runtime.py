@@ -13,8 +13,6 @@ follower's key 1 comes from the previous step's mapping.
 from __future__ import annotations
 
 import json
-import os
-import threading
 from dataclasses import dataclass
 from math import sqrt
 
@@ -22,14 +20,13 @@ import numpy as np
 
 from . import features as F
 from .follower import FollowerOptions, HandHold, Placement, Separation
+from .nets import load_nets
 from .pose import PoseRecovery, bone_vectors_from_pose
-from .representation import (DEVICE_FROM_HEAD, blend_root, pose_to_world, root_compose, root_from_head, root_relative, rot6d_to_matrix,
+from .representation import (DEVICE_FROM_HEAD, blend_root, pose_to_world, root_compose, root_from_head, root_relative,
                              rot_to_local, to_local, to_world)
+from .rotations import quat_to_matrix_one
 from .skeleton import FEET, HEAD_BONE, JOINT_INDEX, JOINT_NAMES, TRACKED
 
-MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
-MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
-MODEL_FILES = {"mapping": "mapping.onnx", "leader": "tracker_leader.onnx", "follower": "tracker_follower.onnx"}
 # Head height (end of `upperneck`, metres) of the training leader standing, and
 # the standing height it corresponds to: calibration uses their ratio.
 TRAIN_HEAD_HEIGHT = 1.50
@@ -38,63 +35,12 @@ CALIBRATION_FRAMES = 30  # the first second at 30 Hz
 KIN_HEIGHT, KIN_SPEED, KIN_FLOOR_RISE = 0.035, 1.5, 0.001  # kinematic contacts: m, m/s, m per frame
 
 
-def _quat_matrix(q) -> np.ndarray:
-    """One unit quaternion (w, x, y, z) to a rotation matrix (normalised first)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64).tolist()
-    n = 2.0 / (w * w + x * x + y * y + z * z)
-    return np.array([[1 - n * (y * y + z * z), n * (x * y - w * z), n * (x * z + w * y)],
-                     [n * (x * y + w * z), 1 - n * (x * x + z * z), n * (y * z - w * x)],
-                     [n * (x * z - w * y), n * (y * z + w * x), 1 - n * (x * x + y * y)]])
-
-
 def _head_scale(heights) -> float:
     """Scale from head heights seen at the start: their 90th percentile (the
     upright head, not a dip) against the training leader's, within the scales of
     users 1.35–2.10 m tall."""
     s = TRAIN_HEAD_HEIGHT / float(np.percentile(heights, 90))
     return float(np.clip(s, TRAIN_HEIGHT / 2.10, TRAIN_HEIGHT / 1.35))
-
-
-class OnnxNet:
-    """One ONNX network on onnxruntime's CPU provider, batch 1."""
-
-    def __init__(self, path: str, threads: int = 1):
-        import onnxruntime as ort  # imported lazily: the core stays importable without it
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = max(1, int(threads))
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        self.path = path
-        self.session = ort.InferenceSession(path, sess_options=opts, providers=["CPUExecutionProvider"])
-        self.meta = dict(self.session.get_modelmeta().custom_metadata_map)
-        self.input = self.session.get_inputs()[0].name
-        self.output = self.session.get_outputs()[0].name
-        # batch 1 (the frame loop): preallocated, bound input and output buffers
-        # (io binding skips the per-call feed/fetch conversions, ~10 µs a run)
-        n_in, n_out = self.session.get_inputs()[0].shape[1], self.session.get_outputs()[0].shape[1]
-        self._one = None
-        if isinstance(n_in, int) and isinstance(n_out, int):
-            self._x1 = np.zeros((1, n_in), dtype=np.float32)
-            self._y1 = np.zeros((1, n_out), dtype=np.float32)
-            self._one = self.session.io_binding()
-            self._one.bind_ortvalue_input(self.input, ort.OrtValue.ortvalue_from_numpy(self._x1))
-            self._one.bind_ortvalue_output(self.output, ort.OrtValue.ortvalue_from_numpy(self._y1))
-            self._run_options = ort.RunOptions()
-            self._lock = threading.Lock()
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        # the bound buffers serve one caller at a time (the add-on may run two
-        # syntheses on threads with the same nets): the other takes session.run
-        if self._one is not None and x.shape == self._x1.shape and self._lock.acquire(blocking=False):
-            try:
-                self._x1[...] = x
-                self.session.run_with_iobinding(self._one, self._run_options)
-                return self._y1.copy()
-            finally:
-                self._lock.release()
-        return self.session.run([self.output], {self.input: np.ascontiguousarray(x, dtype=np.float32)})[0]
 
 
 @dataclass
@@ -216,46 +162,65 @@ def advance_together(dancers, key_roots, key_tracked, observed_roots, pulls, rec
     return pose_to_world(pos, rot, np.array([d.root for d in dancers])) + (con,)
 
 
-class Synthesizer:
-    """Holds the three ONNX sessions and the rollout state.
+@dataclass(frozen=True)
+class SynthesisOptions:
+    """What a user chooses for a synthesis: one object from the command line,
+    the batch jobs and the Blender operator to the :class:`Synthesizer`.
 
-    ``height``: the leader's standing height in metres (None: the training
-    leader's; "auto": estimated from the take's first second). ``anchor_root``: each dancer's new root is the one
-    its inputs give for that frame (the leader's head; the follower's mapping
-    prediction) rather than the tracker's own, so roots cannot drift. ``foot_lock``: contact-based foot locking (needs
-    ``ik``); ``hand_ik``: put the leader's head and wrists exactly on the input
+    ``models``: the folder of the networks (None: ``$DP_MODEL_DIR``, else the
+    bundled ``models/``); ``threads``: ONNX Runtime threads; ``height``: the
+    leader's standing height in metres (None: the training leader's; "auto":
+    estimated from the take's first second); ``foot_lock``: contact-based foot
+    locking; ``hand_ik``: put the leader's head and wrists exactly on the input
     (two-bone arm IK, neck turn; on by default: it is what the paper scores,
     and the measured full-body error falls from 13.8 to 8.3 cm).
     """
 
-    def __init__(self, model_dir: str | None = None, threads: int = 1, height: float | None = None,
-                 foot_lock: bool = True, hand_ik: bool = True, nets: dict | None = None,
-                 anchor_leader: bool = True, anchor_follower: float = 0.1, feedback=("rigid", "rigid"),
-                 follower: FollowerOptions | None = FollowerOptions(), recentre_pose=(0.05, True)):
-        model_dir = model_dir or MODEL_DIR
+    models: str | None = None
+    threads: int = 1
+    height: float | str | None = None
+    foot_lock: bool = True
+    hand_ik: bool = True
+
+
+# Each dancer's new root: the leader's is the one his head gives (his root cannot
+# drift); without the follower's placement state (``follower=None``, the
+# ablations) hers is pulled this share of the way to the mapping's prediction.
+FOLLOWER_PULL = 0.1
+# What keeps each tracker's pose state on its root on any length of take (see
+# :func:`advance_together`): the leader's head within 5 cm of his root, the
+# follower's pose re-centred on her root every frame.
+RECENTRE_POSE = (0.05, True)
+
+
+class Synthesizer:
+    """Holds the three ONNX sessions and the rollout state.
+
+    ``options``: a :class:`SynthesisOptions`; ``nets``: already loaded networks
+    (default: :func:`~.nets.load_nets` of ``options.models``); ``follower``: the
+    follower's placement state, torso separation and hand holds
+    (:class:`~.follower.FollowerOptions`; None: the earlier path, her root
+    pulled towards the raw prediction). Both dancers' next tracker step starts
+    from the consistent skeleton pose of this one (pose recovery).
+    """
+
+    def __init__(self, options: SynthesisOptions | None = None, nets: dict | None = None,
+                 follower: FollowerOptions | None = FollowerOptions()):
+        options = options or SynthesisOptions()
+        self.options = options
         if nets is None:
-            nets = {k: OnnxNet(os.path.join(model_dir, f), threads) for k, f in MODEL_FILES.items()}
+            nets = load_nets(options.models, options.threads)
         self.nets = nets
-        self.height = height
-        self.foot_lock = foot_lock
-        self.hand_ik = hand_ik
-        self.anchor_leader, self.anchor_follower = anchor_leader, anchor_follower
-        # per dancer (leader, follower): what the tracker's next step starts from
-        # ("network": its own output, "rigid": the consistent skeleton pose,
-        # "final": the pose the user sees) and whether the pose is re-centred
-        # on its root every frame (see :func:`recentre`)
-        self.feedback = (feedback, feedback) if isinstance(feedback, str) else tuple(feedback)
-        # the follower's placement state, torso separation and hand holds
-        # (None: the earlier path, her root pulled towards the raw prediction)
+        self.height = options.height
+        self.foot_lock = options.foot_lock
+        self.hand_ik = options.hand_ik
         self.follower_options = follower
-        self.recentre_pose = (recentre_pose,) * 2 if not isinstance(recentre_pose, (tuple, list)) else tuple(recentre_pose)
         # Rigid skeleton: the neck may turn but the spine may not stretch, so a
         # baked armature (fixed bone lengths) shows exactly this pose.
         self.ik_options = {"max_stretch": 0.0}
         self.default_pose = {r: self._default_pose(nets[r]) for r in ("leader", "follower")}
         # Each dancer's rest skeleton, from its (FK-consistent) default pose.
-        self.bone_vectors = {r: bone_vectors_from_pose(p[:93].reshape(31, 3),
-                                                       rot6d_to_matrix(p[93:279].reshape(31, 6)))
+        self.bone_vectors = {r: bone_vectors_from_pose(F.pose_positions(p), F.pose_rotations(p))
                              for r, p in self.default_pose.items()}
         self._recovery = (PoseRecovery(self.bone_vectors["leader"]), PoseRecovery(self.bone_vectors["follower"]))
         # the follower's arm lengths (shoulder to wrist), for hand holds
@@ -297,7 +262,8 @@ class Synthesizer:
         if self.foot_lock or self.hand_ik:
             from . import ik
             if self.foot_lock:
-                self._lockers = (ik.FootLocker(), ik.FootLocker())
+                from .foot_lock import FootLocker
+                self._lockers = (FootLocker(), FootLocker())
             if self.hand_ik:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
         if self._hold is not None:
@@ -339,7 +305,7 @@ class Synthesizer:
         inv = 1.0 / self.scale()
         if valid[0]:
             head_pos = np.asarray(positions[0], dtype=np.float64)
-            head_rot = _quat_matrix(quats[0])
+            head_rot = quat_to_matrix_one(quats[0])
             root = root_from_head(head_pos, head_rot)
         elif pred is not None and self.last_valid is not None:
             root = pred[0] * np.array([inv, inv, 1.0, 1.0])
@@ -368,7 +334,7 @@ class Synthesizer:
             elif self.last_hand[i - 1] is not None:
                 local = to_local(self.last_hand[i - 1][0][None], self.last_hand[i - 1][1])[0]
             else:  # never seen: the default pose's hand
-                local = self.default_pose["leader"][:93].reshape(31, 3)[TRACKED[i]] * inv
+                local = F.pose_positions(self.default_pose["leader"])[TRACKED[i]] * inv
             tracked[i] = to_world(local[None], root)[0]
         return tracked, head_rot, root
 
@@ -413,10 +379,10 @@ class Synthesizer:
             goal = self._fol_target[1]
             fol_root, fol_pull = (lambda prev, prop: placement.step(prev, prop, goal)), None
         else:
-            fol_root, fol_pull = None, (fk_roots[0], self.anchor_follower)
+            fol_root, fol_pull = None, (fk_roots[0], FOLLOWER_PULL)
         pos, rot, (lc, fc) = advance_together(
             (self.leader, self.follower), np.array([lk_roots, fk_roots]), np.array([lk_tr, fk_tr]),
-            (root if self.anchor_leader else None, fol_root), (None, fol_pull), self.recentre_pose)
+            (root, fol_root), (None, fol_pull), RECENTRE_POSE)
         if self._separation is not None:
             dx, dz = self._separation.push(pos[0], pos[1])
             if dx or dz:  # her body and her root state move together
@@ -424,14 +390,10 @@ class Synthesizer:
                 pos[1, :, 2] += dz
                 self.follower.root = self.follower.root + np.array([dx, dz, 0.0, 0.0])
         rigid = [self._recovery[w](pos[w], rot[w]) for w in (0, 1)]
-        for d, fb, (p, r), c in zip((self.leader, self.follower), self.feedback, rigid, (lc, fc)):
-            if fb == "rigid":  # the next step starts from the consistent skeleton pose
-                d.set_pose(p, r, c)
+        for d, (p, r), c in zip((self.leader, self.follower), rigid, (lc, fc)):
+            d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
         lp, lr = self._recover(0, *rigid[0], lc, tracked_s)
         fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
-        for d, fb, p, r, c in ((self.leader, self.feedback[0], lp, lr, lc), (self.follower, self.feedback[1], fp, fr, fc)):
-            if fb == "final":  # the next step starts from the pose the user sees
-                d.set_pose(p, r, c)
         self.t += 1
         if s != 1.0:
             lp, fp = lp * (1.0 / s), fp * (1.0 / s)
@@ -535,7 +497,7 @@ class Synthesizer:
 
 def save_npz(duet: Duet, path) -> None:
     """Write a duet (SPEC §4) atomically: nothing is left at ``path`` on failure."""
-    from .take import atomic_output
+    from .formats.take import atomic_output
 
     with atomic_output(path, "wb") as f:
         np.savez_compressed(f, **duet.arrays())

@@ -42,6 +42,7 @@ HEAD_BONE = JOINT_INDEX["head"]  # the skull: the head device is rigid on it
 FOOT_NAMES = ("ltibia", "lfoot", "rtibia", "rfoot")
 FEET = np.array([JOINT_INDEX[n] for n in FOOT_NAMES])
 HIPS = (JOINT_INDEX["lhipjoint"], JOINT_INDEX["rhipjoint"])
+WRISTS = (JOINT_INDEX["lwrist"], JOINT_INDEX["rwrist"])
 
 # Left/right mirror: index permutation of the 31 joints.
 _UNSIDED = ("root", "lowerback", "lowerneck")
@@ -86,6 +87,24 @@ def forward_kinematics(parents: np.ndarray, offsets: np.ndarray, root_position: 
             glob[:, j] = glob[:, p] @ local_rotations[:, j]
             pos[:, j] = pos[:, p] + glob[:, p] @ offsets[j]
     return glob, pos
+
+
+def rest_joints(bone_vectors: np.ndarray, parents: np.ndarray | None = None) -> np.ndarray:
+    """Rest-pose forward kinematics: joint positions ``(J, 3)`` (SPEC §2: the ends
+    of the bones) with the root at the origin; ``parents[j] < j``."""
+    parents = PARENTS if parents is None else parents
+    bv = np.asarray(bone_vectors, dtype=np.float64)
+    ends = np.zeros((len(parents), 3))
+    for n in range(1, len(parents)):
+        ends[n] = ends[parents[n]] + bv[n]
+    return ends
+
+
+def rest_starts(bone_vectors: np.ndarray, parents: np.ndarray | None = None) -> np.ndarray:
+    """Rest-pose start of every bone ``(J, 3)``: the root at the origin, a child
+    at its parent's end."""
+    parents = PARENTS if parents is None else parents
+    return rest_joints(bone_vectors, parents)[np.maximum(parents, 0)]
 
 
 @dataclass

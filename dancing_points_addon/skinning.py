@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ik import rest_starts
+from .skeleton import rest_starts
 from .skeleton import JOINT_INDEX, JOINT_NAMES
 
 __all__ = ["Body", "make_body", "lbs", "lbs_frame", "bone_segment_distances"]

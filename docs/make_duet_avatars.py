@@ -28,9 +28,9 @@ FRAME = 30
 
 
 def main(models=os.path.join(ROOT, "models")):
-    from dancing_points_addon.asf_amc import load_amc
+    from dancing_points_addon.formats.asf_amc import load_amc
     from dancing_points_addon.skeleton import Motion
-    from dancing_points_addon.take import take_from_motion, write_take
+    from dancing_points_addon.formats.take import take_from_motion, write_take
 
     rmod = import_from_extension("operators.retarget")
     tmp = tempfile.mkdtemp(prefix="dp_docs_")

@@ -16,10 +16,10 @@ temporary paths the parent renames into place).
 
 Inside the Blender binary the workers are ``blender --background --command
 dancing_points worker`` processes (the extension enabled from the user's
-preferences, as in the parent); with the ``bpy`` module
-(``python -m dancing_points_addon batch``) they are Python processes that
-enable the checkout as an extension themselves
-(``batch.enable_extension_in_bpy``).
+preferences, as in the parent): :func:`cli` hands :func:`convert_job` to the
+core's worker loop. With the ``bpy`` module (``python -m dancing_points_addon
+batch``) they are ``operators/batch_worker.py`` processes, which enable the
+checkout as an extension themselves and then use :func:`convert_job` too.
 """
 
 import os
@@ -29,7 +29,11 @@ import sys
 import bpy
 
 from ..dancing_points_addon import batch as core_batch
-from ..dancing_points_addon.errors import InputError
+from ..dancing_points_addon.argtypes import Parser, UsageError
+from ..dancing_points_addon.batch.options import synthesis_options
+from ..dancing_points_addon.batch.worker import worker_main, write_duet_files
+from ..dancing_points_addon.errors import InputError, UserError, error_message
+from .batch_worker import enable_extension_in_bpy
 
 COMMAND_ID = "dancing_points"
 PROG = "blender --background --command " + COMMAND_ID
@@ -44,10 +48,8 @@ Run '{prog} convert --help' for every option.""".format(prog=PROG)
 _handle = None
 
 
-class BatchError(Exception):
+class BatchError(UserError):
     """A failed take whose message is already the one line to report."""
-
-    one_line = True
 
 
 # --------------------------------------------------------------------------- the command
@@ -55,20 +57,18 @@ class BatchError(Exception):
 def cli(argv):
     """``blender --command dancing_points ...``: the ``convert`` subcommand (and the
     internal ``worker``). Returns the exit status."""
-    from ..dancing_points_addon.cli import UsageError, _Parser
-
     argv = list(argv)
     if argv and argv[0] == "worker":  # internal: one worker process of a batch
-        return core_batch.worker_main(bpy_converter=convert_job)
+        return worker_main(bpy_converter=convert_job)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
         return 0 if argv else 2
     if argv[0] != "convert":
         print("error: {:s}: unknown subcommand {!r} (expected 'convert')".format(PROG, argv[0]), file=sys.stderr)
         return 2
-    parser = _Parser(prog=PROG + " convert",
-                     description="Convert takes into baked duets in parallel (see the batch command of "
-                                 "python -m dancing_points_addon).")
+    parser = Parser(prog=PROG + " convert",
+                    description="Convert takes into baked duets in parallel (see the batch command of "
+                                "python -m dancing_points_addon).")
     core_batch.add_arguments(parser, default_format="blend")
     try:
         args = parser.parse_args(argv[1:])
@@ -110,7 +110,7 @@ def _fresh_scene():
     """An empty scene, the extension still enabled (``read_homefile`` keeps the preferences)."""
     bpy.ops.wm.read_homefile(use_empty=True)
     if not hasattr(bpy.types, "DANCING_POINTS_OT_import_take"):
-        core_batch.enable_extension_in_bpy()
+        enable_extension_in_bpy()
     return bpy.context
 
 
@@ -156,8 +156,8 @@ def _retarget_onto_rigs(context, duet_coll, opts, path):
                 rigs[role] = retarget.load_rig_file(rig_path, context)
         retarget.retarget_duet_onto(rigs.get("leader"), rigs.get("follower"), duet_coll, context,
                                     foot_lock=not opts.get("no_foot_lock"))
-    except (retarget.RetargetFailure, retarget.rt.RetargetError) as exc:
-        raise BatchError("{:s}: retarget: {:s}".format(path, retarget._one_line(exc))) from None
+    except UserError as exc:
+        raise BatchError("{:s}: retarget: {:s}".format(path, error_message(exc))) from None
 
 
 def convert_job(job, progress):
@@ -166,7 +166,7 @@ def convert_job(job, progress):
     ``npz``, ``bvh_leader``, ``bvh_follower``). Returns ``{"frames": n}``; raises
     on a bad take (the worker reports it and removes the temporary files)."""
     from .props import active_take
-    from .synthesize import ModelError, make_synthesizer
+    from .synthesize import make_synthesizer
     from .take_io import take_from_collection
     from . import bake
 
@@ -187,14 +187,11 @@ def convert_job(job, progress):
         raise BatchError("{:s}: the import made no take".format(path))
     take = take_from_collection(context, coll)
     try:
-        synth, warnings = make_synthesizer(opts["models"], int(opts.get("threads") or 1), take.height,
-                                           not opts.get("no_foot_lock"), not opts.get("no_hand_ik"))
-    except ModelError as exc:
-        raise BatchError(str(exc)) from None
-    for w in warnings:
-        print("warning: {:s}: {:s}".format(path, w), file=sys.stderr)
+        synth = make_synthesizer(synthesis_options(opts, take.height))
+    except UserError as exc:
+        raise BatchError(error_message(exc)) from None
     duet = synth.synthesize(take, progress=lambda i, n: progress(0.1 + 0.6 * i / max(n, 1)))
-    core_batch.write_duet_files(temps, duet)
+    write_duet_files(temps, duet)
     if any(k in temps for k in ("blend", "fbx", "mp4")):
         duet_coll, _ = bake.bake_duet(context, duet, coll.name, coll.dancing_points.frame_start)
         if opts.get("leader_rig") or opts.get("follower_rig"):

@@ -151,8 +151,13 @@ def sample_fcurve(fc, frames):
     return np.array([fc.evaluate(float(f)) for f in frames])
 
 
-def set_file_format(image_settings, file_format):
-    """Set an output format; 5.0+ needs the media type first for video."""
-    if hasattr(image_settings, "media_type"):
-        image_settings.media_type = 'VIDEO' if file_format == 'FFMPEG' else 'IMAGE'
-    image_settings.file_format = file_format
+def operator_error_text(exc) -> str:
+    """The one line of an error raised by a Blender operator (``RuntimeError:
+    Error: ...``, or a Python traceback of an importer): its last non-empty line,
+    without Blender's ``Error:`` prefix."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    msg = lines[-1] if lines else type(exc).__name__
+    for prefix in ("Error: ", "error: "):
+        if msg.startswith(prefix):
+            msg = msg[len(prefix):]
+    return msg

@@ -8,6 +8,8 @@ import os
 import bpy
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
+from .compat import operator_error_text
+
 
 def _default_path(context):
     settings = getattr(context.scene, "dancing_points", None)
@@ -102,8 +104,7 @@ class DANCING_POINTS_OT_render_preview(bpy.types.Operator):
                 scene.frame_set(frame)
             out = bpy.path.abspath(r.frame_path(frame=f0))
         except Exception as exc:
-            self.report({'ERROR'}, "render failed: {:s}".format(str(exc).strip().splitlines()[-1]
-                                                                if str(exc).strip() else type(exc).__name__))
+            self.report({'ERROR'}, "render failed: {:s}".format(operator_error_text(exc)))
             return {'CANCELLED'}
         finally:
             saved.restore()

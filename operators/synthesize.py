@@ -15,8 +15,9 @@ import time
 import bpy
 from bpy.props import BoolProperty, StringProperty
 
-from ..dancing_points_addon.errors import InputError
-from ..dancing_points_addon.runtime import MODEL_ENV
+from ..dancing_points_addon.errors import InputError, error_message
+from ..dancing_points_addon.nets import MODEL_DIR, MODEL_ENV, ModelError, load_nets
+from ..dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from . import bake
 from .props import active_take
 from .take_io import TakeError, take_from_collection
@@ -24,8 +25,6 @@ from .take_io import TakeError, take_from_collection
 _NET_CACHE = {}
 
 
-class ModelError(Exception):
-    """The networks cannot be loaded (one user-facing line)."""
 
 
 def _preferences(context):
@@ -38,52 +37,24 @@ def _preferences(context):
 
 def resolve_model_dir(context, explicit=""):
     """Operator property > ``$DP_MODEL_DIR`` > preferences > the bundled ``models/``."""
-    from ..dancing_points_addon import runtime
-
     prefs = _preferences(context)
     for cand in (explicit, os.environ.get(MODEL_ENV, ""), getattr(prefs, "model_dir", "") if prefs else ""):
         if cand:
             return os.path.abspath(bpy.path.abspath(cand))
-    return runtime.MODEL_DIR
+    return MODEL_DIR
 
 
-def _load_nets(model_dir, threads):
-    from ..dancing_points_addon import runtime
-
-    paths = {k: os.path.join(model_dir, f) for k, f in runtime.MODEL_FILES.items()}
-    missing = [os.path.basename(p) for p in paths.values() if not os.path.isfile(p)]
-    if missing:
-        raise ModelError("no synthesis models in {:s} (missing {:s})".format(model_dir, ", ".join(missing)))
-    key = (model_dir, int(threads), tuple(os.path.getmtime(p) for p in paths.values()))
-    nets = _NET_CACHE.get(key)
-    if nets is None:
-        try:
-            nets = {k: runtime.OnnxNet(p, threads) for k, p in paths.items()}
-        except ImportError:
-            raise ModelError("onnxruntime is not installed in Blender's Python") from None
-        except Exception as exc:
-            raise ModelError("cannot load the models in {:s}: {:s}".format(
-                model_dir, str(exc).splitlines()[0] if str(exc) else type(exc).__name__)) from None
-        _NET_CACHE.clear()
-        _NET_CACHE[key] = nets
-    return nets
-
-
-def make_synthesizer(model_dir, threads=1, height=None, foot_lock=True, hand_ik=True):
-    """``(Synthesizer, warnings)``; options the core cannot provide are switched
-    off with a warning rather than failing."""
-    from ..dancing_points_addon import runtime
-
-    nets = _load_nets(model_dir, threads)
-    warnings = []
+def make_synthesizer(options: SynthesisOptions):
+    """A :class:`Synthesizer` for ``options`` (networks from the one cache);
+    :class:`ModelError` when the models cannot be loaded."""
     try:
-        synth = runtime.Synthesizer(model_dir, threads, height, foot_lock, hand_ik, nets=nets)
-    except ImportError:
-        warnings.append("foot locking / hand IK not available in this version; synthesised without them")
-        synth = runtime.Synthesizer(model_dir, threads, height, False, False, nets=nets)
+        nets = load_nets(options.models, options.threads)
+    except InputError as exc:
+        raise ModelError(exc.reason + " in " + exc.path) from None
+    try:
+        return Synthesizer(options, nets=nets)
     except ValueError as exc:
         raise ModelError(str(exc)) from None
-    return synth, warnings
 
 
 class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
@@ -118,17 +89,12 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
         take = take_from_collection(context, coll)
         prefs = _preferences(context)
         threads = int(getattr(prefs, "onnx_threads", 1)) if prefs else 1
-        synth, warnings = make_synthesizer(resolve_model_dir(context, self.model_dir), threads,
-                                           take.height, self.foot_lock, self.hand_ik)
-        for w in warnings:
-            self.report({'WARNING'}, w)
+        synth = make_synthesizer(SynthesisOptions(models=resolve_model_dir(context, self.model_dir), threads=threads,
+                                                  height=take.height, foot_lock=self.foot_lock, hand_ik=self.hand_ik))
         return coll, take, synth
 
     def _error(self, exc):
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        if not isinstance(exc, (TakeError, InputError, ModelError)):
-            msg = "Dancing Points synthesis failed: {:s}: {:s}".format(type(exc).__name__, msg)
-        self.report({'ERROR'}, msg)
+        self.report({'ERROR'}, error_message(exc, "Dancing Points synthesis failed"))
         return {'CANCELLED'}
 
     def _finish(self, context, coll, duet, t_synth):

@@ -37,9 +37,10 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 from bpy_extras.io_utils import ImportHelper, axis_conversion, orientation_helper
 
 from ..dancing_points_addon import blender_math as bm
-from ..dancing_points_addon.errors import InputError
+from ..dancing_points_addon.errors import InputError, UserError, error_message
 from ..dancing_points_addon.resample import resample_take
-from ..dancing_points_addon.take import Take, load_input, take_from_tracked
+from ..dancing_points_addon.formats.naming import rig_side_bones, rig_tracked_bones
+from ..dancing_points_addon.formats.take import Take, load_input, take_from_tracked
 from . import compat
 from .props import (DEVICE_OBJECT_NAMES, DEVICE_PROP, DEVICES, KIND_TAKE, TRACKED_PROP, device_objects)
 
@@ -47,67 +48,11 @@ FILE_TYPES = (".csv", ".bvh", ".fbx", ".amc")
 NET_FPS = 30.0
 
 
-class TakeError(Exception):
+class TakeError(UserError):
     """A one-line, user-facing problem with a take in the scene."""
 
 
 # --------------------------------------------------------------------------- rig reading
-
-def _norm(name):
-    import re
-    base = re.split(r"[:|]", name)[-1]
-    return re.sub(r"[\s_\-.]", "", base).lower()
-
-
-_HAND_ALIASES = {
-    "lhand": ("lefthand", "lhand", "handl", "handleft", "leftwrist", "lwrist", "wristl"),
-    "rhand": ("righthand", "rhand", "handr", "handright", "rightwrist", "rwrist", "wristr"),
-}
-
-
-def rig_tracked_bones(bone_names):
-    """``(point bones, rotation bones, naming)`` for head, lhand, rhand; the
-    point is the head of the point bone. None when the rig is not recognised."""
-    idx = {}
-    for n in bone_names:
-        idx.setdefault(_norm(n), n)
-    if "head" not in idx:
-        return None
-    if all(k in idx for k in ("leftfingerbase", "rightfingerbase", "lefthand", "righthand")):
-        return ((idx["head"], idx["leftfingerbase"], idx["rightfingerbase"]),
-                (idx["head"], idx["lefthand"], idx["righthand"]), "cmu")
-    hands = []
-    for dev in ("lhand", "rhand"):
-        found = next((idx[a] for a in _HAND_ALIASES[dev] if a in idx), None)
-        if found is None:
-            return None
-        hands.append(found)
-    bones = (idx["head"], hands[0], hands[1])
-    naming = "mixamo" if any(n.lower().startswith("mixamorig") for n in bone_names) else "generic"
-    return bones, bones, naming
-
-
-_SIDE_ALIASES = (
-    (("leftupleg", "lefthip", "lthigh", "thighl", "leftthigh", "upperlegl", "lupleg", "lhip", "hipl"),
-     ("rightupleg", "righthip", "rthigh", "thighr", "rightthigh", "upperlegr", "rupleg", "rhip", "hipr")),
-    (("leftarm", "leftupperarm", "upperarml", "lupperarm", "larm", "leftshoulder", "lshoulder"),
-     ("rightarm", "rightupperarm", "upperarmr", "rupperarm", "rarm", "rightshoulder", "rshoulder")),
-)
-
-
-def rig_side_bones(bone_names):
-    """A left and a right bone (hips, else shoulders) whose heads give the
-    body's left-right direction, or None."""
-    idx = {}
-    for n in bone_names:
-        idx.setdefault(_norm(n), n)
-    for left, right in _SIDE_ALIASES:
-        lb = next((idx[a] for a in left if a in idx), None)
-        rb = next((idx[a] for a in right if a in idx), None)
-        if lb is not None and rb is not None:
-            return lb, rb
-    return None
-
 
 def _snapshot():
     colls = ("objects", "meshes", "armatures", "actions", "materials", "images", "textures",
@@ -138,7 +83,7 @@ def _precheck(path, ext):
     """Reject a malformed file with a one-line message before Blender's importer
     sees it (the core BVH parser names the line; FBX: binary files only)."""
     if ext == ".bvh":
-        from ..dancing_points_addon import bvh as core_bvh
+        from ..dancing_points_addon.formats import bvh as core_bvh
         try:
             data = core_bvh.parse_bvh(path)
         except InputError:
@@ -178,8 +123,7 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
                 res = bpy.ops.import_scene.fbx(filepath=path, use_anim=True, ignore_leaf_bones=False,
                                                automatic_bone_orientation=False)
         except RuntimeError as exc:  # the importer's own error report
-            msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "import failed"
-            raise InputError(path, f"Blender's {ext[1:].upper()} importer failed: {msg}") from None
+            raise InputError(path, f"Blender's {ext[1:].upper()} importer failed: {compat.operator_error_text(exc)}") from None
         if 'FINISHED' not in res:
             raise InputError(path, f"Blender's {ext[1:].upper()} importer could not read the file")
         file_fps = scene.render.fps / scene.render.fps_base
@@ -502,12 +446,8 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
     def execute(self, context):
         try:
             coll = self.import_file(context)
-        except (InputError, TakeError) as exc:
-            self.report({'ERROR'}, str(exc).splitlines()[0] if str(exc) else "import failed")
-            return {'CANCELLED'}
-        except Exception as exc:  # an unexpected failure: one line to the user
-            self.report({'ERROR'}, "Dancing Points import failed: {:s}: {:s}".format(
-                type(exc).__name__, str(exc).splitlines()[0] if str(exc) else ""))
+        except Exception as exc:  # noqa: BLE001 - a user error or an unexpected failure: one line
+            self.report({'ERROR'}, error_message(exc, "Dancing Points import failed"))
             return {'CANCELLED'}
         self.report({'INFO'}, "Imported take '{:s}' ({:d} frames at 30 fps)".format(
             coll.name, coll.dancing_points.n_frames))

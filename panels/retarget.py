@@ -6,6 +6,7 @@ loaded as JSON presets)."""
 
 import bpy
 
+from ..operators.retarget.props import ROLE_PROP
 from .common import SubPanel, split_layout
 
 
@@ -51,7 +52,7 @@ class VIEW3D_PT_dancing_points_retarget(SubPanel, bpy.types.Panel):
         # Bone mapping of the active armature (not a Dancing Points one).
         obj = context.active_object
         box = layout.box()
-        if obj is None or obj.type != 'ARMATURE' or obj.get("dp_role"):
+        if obj is None or obj.type != 'ARMATURE' or obj.get(ROLE_PROP):
             box.label(text="Select your rig to edit its bone mapping", icon='INFO')
             return
         box.label(text="Bone Map: " + obj.name, icon='GROUP_BONE')

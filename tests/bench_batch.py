@@ -25,15 +25,15 @@ import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from dancing_points_addon import runtime  # noqa: E402
-from dancing_points_addon.cli import positive_int  # noqa: E402
+from dancing_points_addon import nets  # noqa: E402
+from dancing_points_addon.argtypes import positive_int  # noqa: E402
 SALSA = pathlib.Path(os.environ.get("DP_SHARED", ROOT.parent / "shared")) / "data" / "cmu_salsa"
 GOAL = 1.7
 
 
 def model_dir(explicit):
-    for cand in (explicit, os.environ.get(runtime.MODEL_ENV, ""), runtime.MODEL_DIR):
-        if cand and all(os.path.isfile(os.path.join(cand, f)) for f in runtime.MODEL_FILES.values()):
+    for cand in (explicit, os.environ.get(nets.MODEL_ENV, ""), nets.MODEL_DIR):
+        if cand and all(os.path.isfile(os.path.join(cand, f)) for f in nets.MODEL_FILES.values()):
             return cand
     sys.exit("bench_batch: no synthesis models (give --models DIR)")
 

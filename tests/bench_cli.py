@@ -28,9 +28,9 @@ GOAL = 5.0
 
 
 def make_take(path, seconds):
-    from dancing_points_addon.asf_amc import load_amc
+    from dancing_points_addon.formats.asf_amc import load_amc
     from dancing_points_addon.resample import resample_take
-    from dancing_points_addon.take import Take, take_from_motion, write_take
+    from dancing_points_addon.formats.take import Take, take_from_motion, write_take
 
     parts, total = [], 0.0
     for name in ("60_08.amc", "60_09.amc"):

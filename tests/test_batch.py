@@ -12,6 +12,7 @@ with their reason. Existing outputs are never overwritten without
 The throughput figure (``--jobs 2`` vs ``--jobs 1``) is a benchmark, not a
 test: ``.venv/bin/python tests/bench_batch.py``.
 """
+import argparse
 import io
 import json
 import os
@@ -26,11 +27,11 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
-from dancing_points_addon import batch, runtime
-from dancing_points_addon.asf_amc import load_amc
-from dancing_points_addon.bvh import load_bvh, write_bvh
+from dancing_points_addon import batch, nets
+from dancing_points_addon.formats.asf_amc import load_amc
+from dancing_points_addon.formats.bvh import load_bvh, write_bvh
 from dancing_points_addon.skeleton import JOINT_NAMES, Motion
-from dancing_points_addon.take import take_from_motion, write_take
+from dancing_points_addon.formats.take import take_from_motion, write_take
 
 N60 = 300  # frames at 60 Hz per good take (5 s): 150 duet frames
 N30 = N60 // 2
@@ -538,13 +539,13 @@ for line in sys.stdin:
 def _fake_args(tmp_path, inputs, **kw):
     models = tmp_path / "models"
     models.mkdir(exist_ok=True)
-    for f in runtime.MODEL_FILES.values():
+    for f in nets.MODEL_FILES.values():
         (models / f).write_bytes(b"")
     d = dict(inputs=[str(p) for p in inputs], output_dir=str(tmp_path / "out"), format="bvh", jobs=1,
              render=False, overwrite=False, resume=False, report=None, models=str(models), threads=1,
              input_fps=None, asf=None, height=None, no_foot_lock=False, no_hand_ik=False, no_progress=True)
     d.update(kw)
-    return batch.argparse.Namespace(**d)
+    return argparse.Namespace(**d)
 
 
 def test_parent_removes_what_a_dead_worker_left(tmp_path, capsys):
@@ -628,7 +629,7 @@ def test_blender_command(takes, tmp_path):
     that ``blender --background --command dancing_points worker`` runs."""
     out1, out2 = tmp_path / "o1", tmp_path / "o2"
     got = run_bpy_script(f"""
-        import importlib, io, json, os, sys, contextlib
+        import argparse, importlib, io, json, os, sys, contextlib
         sys.path.insert(0, {str(ROOT / 'tests')!r})
         import bpy
         from ext_util import enable_extension
@@ -648,10 +649,10 @@ def test_blender_command(takes, tmp_path):
         boot = ("import sys; sys.path.insert(0, {str(ROOT / 'tests')!r}); import importlib; "
                 "from ext_util import enable_extension; m = enable_extension(); "
                 "sys.exit(importlib.import_module(m + '.operators.batch_cli').cli(['worker']))")
-        args = core.argparse.Namespace(inputs=[{str(takes / 'c.csv')!r}], output_dir={str(out2)!r}, format="blend",
-                                       jobs=1, render=False, overwrite=False, resume=False, report=None,
-                                       models={MODELS!r}, threads=1, input_fps=None, asf=None, height=None,
-                                       no_foot_lock=False, no_hand_ik=False, no_progress=True)
+        args = argparse.Namespace(inputs=[{str(takes / 'c.csv')!r}], output_dir={str(out2)!r}, format="blend",
+                                  jobs=1, render=False, overwrite=False, resume=False, report=None,
+                                  models={MODELS!r}, threads=1, input_fps=None, asf=None, height=None,
+                                  no_foot_lock=False, no_hand_ik=False, no_progress=True)
         res["worker"] = core.run(args, worker_cmd=[sys.executable, "-c", boot], in_blender=True)
         bpy.ops.preferences.addon_disable(module=mod)
         res["unregistered"] = cli._handle is None

@@ -22,15 +22,16 @@ bpy = pytest.importorskip("bpy")
 import blender_scene_util as bsu  # noqa: E402
 from conftest import MODELS, SALSA  # noqa: E402
 from ext_util import enable_extension, import_from_extension  # noqa: E402
+from helpers import quat_angle_deg  # noqa: E402
 
 from types import SimpleNamespace  # noqa: E402
 
 from dancing_points_addon import blender_math as bm  # noqa: E402
 from dancing_points_addon import skinning  # noqa: E402
-from dancing_points_addon.asf_amc import load_amc  # noqa: E402
+from dancing_points_addon.formats.asf_amc import load_amc  # noqa: E402
 from dancing_points_addon.resample import resample_take  # noqa: E402
 from dancing_points_addon.skeleton import JOINT_NAMES, Motion  # noqa: E402
-from dancing_points_addon.take import read_take, take_from_motion, write_take  # noqa: E402
+from dancing_points_addon.formats.take import read_take, take_from_motion, write_take  # noqa: E402
 
 SECONDS = 10.0
 MM = 1e-3
@@ -54,7 +55,7 @@ def files(tmp_path_factory):
     take = take_from_motion(motion)
     csv = d / "salsa60_10.csv"
     write_take(csv, take)
-    from dancing_points_addon.bvh import write_bvh
+    from dancing_points_addon.formats.bvh import write_bvh
     bvh = d / "salsa60_10.bvh"
     write_bvh(bvh, motion)
     return {"dir": d, "csv": csv, "bvh": bvh, "motion": motion, "take": take}
@@ -147,7 +148,7 @@ def test_import_lost_tracking_round_trip(files, tmp_path):
     pos, q = take.positions.copy(), take.quats.copy()
     pos[100:140, 1] = np.nan
     q[100:140, 1] = np.nan
-    from dancing_points_addon.take import Take
+    from dancing_points_addon.formats.take import Take
     path = tmp_path / "lost.csv"
     write_take(path, Take(take.time, pos, q, {"height_m": 1.62}, ""))
     coll = _import(path)
@@ -168,14 +169,6 @@ def test_import_amc_matches_core(files):
     back = take_io.take_from_collection(bpy.context, coll)
     assert back.n_frames == ref.n_frames
     np.testing.assert_allclose(back.positions, ref.positions, atol=1e-5)
-
-
-def quat_angle_deg(a, b):
-    """Rotation angle (degrees) between unit quaternions ``(…, 4)``, accurate near 0."""
-    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    b = b * np.where(np.sum(a * b, -1, keepdims=True) < 0, -1.0, 1.0)
-    return np.degrees(4 * np.arcsin(np.clip(np.linalg.norm(a - b, axis=-1) / 2, 0, 1)))
 
 
 def _export_fbx(files, path, rest_frame):
@@ -367,7 +360,7 @@ def baked(files):
     assert len(duets) == 1
     # The core on the same take (as the operator read it back from the empties).
     runtime = import_from_extension("dancing_points_addon.runtime")
-    synth = runtime.Synthesizer(model_dir=MODELS, foot_lock=True)
+    synth = runtime.Synthesizer(runtime.SynthesisOptions(models=MODELS, foot_lock=True))
     t0 = time.perf_counter()
     duet = synth.synthesize(take)
     t_core = time.perf_counter() - t0
@@ -669,7 +662,7 @@ def test_bake_matches_the_command_line_duet(files):
     keyframes on the way)."""
     _, duet_coll = _fresh_bake(files)
     runtime = import_from_extension("dancing_points_addon.runtime")
-    cli = runtime.Synthesizer(model_dir=MODELS).synthesize(read_take(files["csv"]))
+    cli = runtime.Synthesizer(runtime.SynthesisOptions(models=MODELS)).synthesize(read_take(files["csv"]))
     frames = 1 + np.arange(cli.n_frames)
     for role in ("leader", "follower"):
         arm, _ = _rig(duet_coll, role)

@@ -1,11 +1,11 @@
-"""BVH parser, kinematics, namings and writer (dancing_points_addon.bvh)."""
+"""BVH parser, kinematics, namings and writer (dancing_points_addon.formats.bvh)."""
 import os
 
 import numpy as np
 import pytest
 
-from dancing_points_addon.asf_amc import load_amc
-from dancing_points_addon.bvh import (UNIT_SCALES, bvh_to_motion, detect_naming, fk, head_bone_rotation,
+from dancing_points_addon.formats.asf_amc import load_amc
+from dancing_points_addon.formats.bvh import (UNIT_SCALES, bvh_to_motion, detect_naming, fk, head_bone_rotation,
                                       load_bvh, parse_bvh, rest_height, tracked_points, unit_scale,
                                       write_bvh)
 from dancing_points_addon.errors import InputError

@@ -1,40 +1,14 @@
 """``python -m dancing_points_addon extract`` as a user runs it (SPEC §7)."""
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
-from conftest import ROOT, SALSA, SOLO
-from dancing_points_addon.asf_amc import load_amc
-from dancing_points_addon.take import read_take, take_from_motion, write_take
-from test_take import REJECTIONS, irregular_take, quat_angle_deg, write_case
-
-
-def run_cli(*args, timeout=120):
-    return subprocess.run([sys.executable, "-m", "dancing_points_addon", *map(str, args)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=timeout)
-
-
-def assert_bad_input(res, out_path, *fragments, old=None):
-    """Exit 2, exactly one stderr line, no traceback, output absent or untouched."""
-    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
-    lines = res.stderr.splitlines()
-    assert len(lines) == 1, res.stderr
-    assert lines[0].startswith("error: "), res.stderr
-    assert "Traceback" not in res.stderr + res.stdout
-    for frag in fragments:
-        assert frag in lines[0], (frag, lines[0])
-    if old is None:
-        assert not out_path.exists()
-    else:
-        assert out_path.read_bytes() == old
-    # No temporary files left beside the output either.
-    if out_path.parent.is_dir():
-        leftovers = [p.name for p in out_path.parent.iterdir() if p.name.startswith("." + out_path.name)]
-        assert not leftovers, leftovers
-    return lines[0]
+from conftest import SALSA, SOLO
+from dancing_points_addon.formats.asf_amc import load_amc
+from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
+from helpers import (REJECTIONS, assert_bad_input, bad_number, broken_amc, irregular_take, quat_angle_deg, run_cli,
+                     short_bone, unknown_bone, write_case)
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +48,7 @@ def test_extract_amc_options(tmp_path):
 
 
 def test_extract_bvh(tmp_path, salsa_motion):
-    from dancing_points_addon.bvh import write_bvh
+    from dancing_points_addon.formats.bvh import write_bvh
 
     bvh = tmp_path / "60_01.bvh"
     write_bvh(bvh, salsa_motion)
@@ -118,37 +92,9 @@ def test_bad_take_files(tmp_path, kind):
     assert assert_bad_input(run_cli("extract", src, "-o", out), out, old=b"precious\n") == msg
 
 
-def _broken_amc(tmp_path, edit):
-    d = tmp_path / "amc"
-    d.mkdir()
-    shutil.copy(SALSA / "60.asf", d / "60.asf")
-    lines = (SALSA / "60_01.amc").read_text().splitlines()
-    lineno = edit(lines)
-    (d / "60_01.amc").write_text("\n".join(lines) + "\n")
-    return d / "60_01.amc", lineno
-
-
-def _bad_number(lines):
-    i = next(k for k, ln in enumerate(lines) if ln.startswith("lfemur ") and k > 500)
-    lines[i] = "lfemur 1.0 x2.5 3.0"
-    return i + 1
-
-
-def _short_bone(lines):
-    i = next(k for k, ln in enumerate(lines) if ln.startswith("rtibia ") and k > 300)
-    lines[i] = "rtibia"
-    return i + 1
-
-
-def _unknown_bone(lines):
-    i = next(k for k, ln in enumerate(lines) if ln.startswith("head ") and k > 100)
-    lines[i] = "nose 1 2 3"
-    return i + 1
-
-
-@pytest.mark.parametrize("edit", [_bad_number, _short_bone, _unknown_bone])
+@pytest.mark.parametrize("edit", [bad_number, short_bone, unknown_bone])
 def test_broken_amc(tmp_path, edit):
-    amc, lineno = _broken_amc(tmp_path, edit)
+    amc, lineno = broken_amc(tmp_path, edit)
     out = tmp_path / "out.csv"
     out.write_bytes(b"keep me")
     assert_bad_input(run_cli("extract", amc, "-o", out), out, f"{amc}:{lineno}: ", old=b"keep me")

@@ -69,6 +69,9 @@ def test_blender_builds_package_without_dev_files(tmp_path):
     excluded = ("training/", "tests/", ".ci/", ".venv/", ".git", "docs/", "cache/", "out/")
     leaked = [n for n in names if n.startswith(excluded) or "__pycache__/" in n or n.endswith(".pyc")]
     assert not leaked, leaked
+    # The core in the zip is the bpy-free runtime: no training-only module, no developer tool.
+    for mod in ("dataset.py", "metrics.py", "build_extension.py"):
+        assert not any(n.endswith("/" + mod) for n in names), mod
     # The built archive passes validation too.
     r = extension_cli("validate", archive)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -133,10 +136,10 @@ def test_disable_and_reenable_cleanly(dp_extension):
 
 
 def test_build_extension_bundles_models_and_wheels(tmp_path):
-    """``python -m dancing_points_addon build-extension``: Blender's own build of the
+    """``python -m tools.build_extension``: Blender's own build of the
     tracked files, with the ONNX Runtime wheels of the platform (never numpy), the
     shipped models, and no training code, tests or data; each zip validated."""
-    res = subprocess.run([sys.executable, "-m", "dancing_points_addon", "build-extension", "-o", str(tmp_path),
+    res = subprocess.run([sys.executable, "-m", "tools.build_extension", "-o", str(tmp_path),
                           "--platform", "linux-x64"], cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert res.returncode == 0, res.stdout + res.stderr
     (archive,) = tmp_path.glob("dancing_points-*-linux_x64.zip")

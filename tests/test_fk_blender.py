@@ -18,8 +18,8 @@ from blender_util import (asf_axes, asf_local_matrix, build_asf_armature,  # noq
                           empty_scene, pose_points)
 from mathutils import Vector  # noqa: E402
 
-from dancing_points_addon.asf_amc import load_amc, parse_amc, parse_asf  # noqa: E402
-from dancing_points_addon.bvh import bvh_to_motion, fk, parse_bvh, write_bvh  # noqa: E402
+from dancing_points_addon.formats.asf_amc import load_amc, parse_amc, parse_asf  # noqa: E402
+from dancing_points_addon.formats.bvh import bvh_to_motion, fk, parse_bvh, write_bvh  # noqa: E402
 from dancing_points_addon.skeleton import CMU_BVH_NAMES, JOINT_NAMES, PARENTS  # noqa: E402
 
 TOL_M = 0.5e-3

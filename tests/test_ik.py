@@ -4,9 +4,10 @@ import time
 import numpy as np
 import pytest
 
-from dancing_points_addon import metrics
-from dancing_points_addon.asf_amc import load_amc
-from dancing_points_addon.ik import EndEffectorIK, FootLocker, _two_bone_s, rotation_between, two_bone_ik
+from training import metrics
+from dancing_points_addon.formats.asf_amc import load_amc
+from dancing_points_addon.foot_lock import FootLocker
+from dancing_points_addon.ik import EndEffectorIK, rotation_between, two_bone_s, two_bone_ik
 from dancing_points_addon.representation import contact_labels, floor_levels
 from dancing_points_addon.skeleton import (FEET, JOINT_INDEX, JOINT_NAMES, PARENTS, TRACKED,
                                            bone_lengths_from_positions)
@@ -78,7 +79,7 @@ def test_two_bone_ik_lengths_reach_plane_and_rotations():
     assert np.abs(np.einsum("nij,nj->ni", R2, ankle - knee) - (a2 - k2)).max() < 1e-9
     # the scalar kernel used by the streaming solvers agrees
     for i in range(50):
-        ks, as_, R1s, R2s = _two_bone_s(hip[i], knee[i], ankle[i], target[i], pole[i])
+        ks, as_, R1s, R2s = two_bone_s(hip[i], knee[i], ankle[i], target[i], pole[i])
         assert np.allclose(ks, k2[i], atol=1e-12) and np.allclose(as_, a2[i], atol=1e-12)
         assert np.allclose(np.reshape(R1s, (3, 3)), R1[i], atol=1e-9)
         assert np.allclose(np.reshape(R2s, (3, 3)), R2[i], atol=1e-9)

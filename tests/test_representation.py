@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from dancing_points_addon import features as F
-from dancing_points_addon.asf_amc import load_amc, parse_asf
-from dancing_points_addon.dataset import (SALSA_TAKES, build_clips, mirror, n_train_frames, split_range)
+from dancing_points_addon.formats.asf_amc import load_amc, parse_asf
+from training.dataset import (SALSA_TAKES, build_clips, mirror, n_train_frames, split_range)
 from dancing_points_addon.representation import (contact_labels, floor_levels, root_compose,
                                                  root_from_motion, root_relative, rot_to_local,
                                                  rot_to_world, to_local, to_world)

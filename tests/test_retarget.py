@@ -36,8 +36,9 @@ import numpy as np
 import pytest
 
 from conftest import ASSETS, MODELS, SALSA
-from dancing_points_addon import gltf_meshopt
+from dancing_points_addon.formats import gltf_meshopt
 from dancing_points_addon import retarget as rt
+from dancing_points_addon.retarget.solver import interp_poly
 
 AVATARS = {"leader": "White_M_1_Casual.glb", "follower": "White_F_1_Casual.glb"}
 # The take: seconds 10-15 of CMU salsa 60_10 (the dancers hold hands in it).
@@ -85,7 +86,7 @@ def test_axis_angle_channels_round_trip_on_salsa_rotations():
     reading them back) round-trip to the same rotation: every joint of 300
     frames of CMU 60_10, the identity and a tiny rotation included. (The rigs of
     the Blender tests have no AXIS_ANGLE bones.)"""
-    from dancing_points_addon.asf_amc import load_amc
+    from dancing_points_addon.formats.asf_amc import load_amc
     from dancing_points_addon.rotations import (axis_angle_to_quat, matrix_to_quat, quat_to_axis_angle,
                                                 quat_to_matrix, rotation_angle)
 
@@ -233,13 +234,11 @@ def _apose_target():
 
 
 def _rest_source():
-    from dancing_points_addon.asf_amc import load_amc
-    from dancing_points_addon.skeleton import PARENTS
+    from dancing_points_addon.formats.asf_amc import load_amc
+    from dancing_points_addon.skeleton import rest_joints
 
     bv = load_amc(SALSA / "60_10.amc").bone_vectors
-    ends = np.zeros((31, 3))
-    for n in range(1, 31):
-        ends[n] = ends[PARENTS[n]] + bv[n]
+    ends = rest_joints(bv)
     return bv, ends - [0, ends[:, 1].min() - 0.02, 0]  # toes 2 cm above the floor
 
 
@@ -266,7 +265,7 @@ def test_alignment_of_an_apose_rig_numpy():
             continue
         sg = ret.seg[b]
         dt = ret._end_world(pose.W, b)[0] - heads[b]
-        ds = rt._interp_poly(pts[:, sg["chain"]], sg["s"], sg["f1"])[0] - rt._interp_poly(
+        ds = interp_poly(pts[:, sg["chain"]], sg["s"], sg["f1"])[0] - interp_poly(
             pts[:, sg["chain"]], sg["s"], sg["f0"])[0]
         ang = np.degrees(np.arccos(np.clip(dt @ ds / np.linalg.norm(dt) / np.linalg.norm(ds), -1, 1)))
         worst = max(worst, ang)
@@ -402,9 +401,9 @@ def scene(tmp_path_factory):
         pytest.skip("bpy not installed")
     if not SALSA.exists() or not (ASSETS / AVATARS["leader"]).exists():
         pytest.skip("shared data or avatars not found")
-    from dancing_points_addon.asf_amc import load_amc
+    from dancing_points_addon.formats.asf_amc import load_amc
     from dancing_points_addon.skeleton import Motion
-    from dancing_points_addon.take import take_from_motion, write_take
+    from dancing_points_addon.formats.take import take_from_motion, write_take
 
     d = tmp_path_factory.mktemp("dp_retarget")
     m = load_amc(SALSA / "60_10.amc")
@@ -646,6 +645,18 @@ def _wrist_gaps(W, sources, targets, target_hands):
     return gaps(sl, sf), gaps(tl, tf)
 
 
+def _assert_held_hands_meet(W, sources, targets, target_hands, what):
+    """Where the source dancers' wrists are < 15 cm apart, the targets' wrists are
+    at the source's gap (median error < 3 cm)."""
+    ds, dt = _wrist_gaps(W, sources, targets, target_hands)
+    held = ds < 0.15
+    assert held.any(), "the clip must hold hands somewhere for this test to mean anything"
+    gap = np.abs(dt[held] - ds[held])
+    print(f"\n{what}: {held.sum()} held pair-frames; |target gap - source gap| mean {gap.mean() / CM:.2f} cm, "
+          f"median {np.median(gap) / CM:.2f} cm, max {gap.max() / CM:.2f} cm")
+    assert np.median(gap) < 3 * CM
+
+
 def test_hands_that_hold_stay_together(scene):
     """Where the source dancers' wrists are < 15 cm apart, the avatars' are too
     (at the source's gap, up to arm reach)."""
@@ -654,13 +665,7 @@ def test_hands_that_hold_stay_together(scene):
     (la, _), (fa, _) = scene["avatars"]["leader"], scene["avatars"]["follower"]
     W = _evaluate([dp["leader"], dp["follower"], la, fa], frames)
 
-    ds, dt = _wrist_gaps(W, (dp["leader"], dp["follower"]), (la, fa), ("LeftHand", "RightHand"))
-    held = ds < 0.15
-    assert held.any(), "the clip must hold hands somewhere for this test to mean anything"
-    gap = np.abs(dt[held] - ds[held])
-    print(f"\nhand holds: {held.sum()} pair-frames; |target gap - source gap| mean {gap.mean() / CM:.2f} cm, "
-          f"max {gap.max() / CM:.2f} cm")
-    assert np.median(gap) < 3 * CM
+    _assert_held_hands_meet(W, (dp["leader"], dp["follower"]), (la, fa), ("LeftHand", "RightHand"), "hand holds")
 
 
 @pytest.mark.parametrize("role", ["leader", "follower"])
@@ -688,13 +693,8 @@ def test_single_dancer_closes_hands_on_the_partners_rig(scene):
     frames = scene["frames"]
     W = _evaluate([dp["leader"], dp["follower"], ue["leader"], ue["follower"]], frames)
 
-    ds, dt = _wrist_gaps(W, (dp["leader"], dp["follower"]), (ue["leader"], ue["follower"]), ("hand_l", "hand_r"))
-    held = ds < 0.15
-    assert held.any(), "the clip must hold hands somewhere for this test to mean anything"
-    gap = np.abs(dt[held] - ds[held])
-    print(f"\nsingle-dancer retarget: {held.sum()} held pair-frames, |target gap - source gap| "
-          f"median {np.median(gap) / CM:.2f} cm, max {gap.max() / CM:.2f} cm")
-    assert np.median(gap) < 3 * CM
+    _assert_held_hands_meet(W, (dp["leader"], dp["follower"]), (ue["leader"], ue["follower"]), ("hand_l", "hand_r"),
+                            "single-dancer retarget")
 
 
 def test_bad_input_reports_one_line(scene):

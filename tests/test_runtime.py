@@ -5,14 +5,14 @@ import pytest
 
 from conftest import ROOT, SALSA
 from dancing_points_addon import features as F
-from dancing_points_addon.asf_amc import load_amc
-from dancing_points_addon.dataset import split_range
+from dancing_points_addon.formats.asf_amc import load_amc
+from training.dataset import split_range
 from dancing_points_addon.representation import root_from_motion
-from dancing_points_addon.runtime import MODEL_DIR, Synthesizer
+from dancing_points_addon.nets import MODEL_DIR
+from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import TRACKED, Motion, bone_lengths_from_positions
-from dancing_points_addon.take import Take, read_take, take_from_motion
-from test_cli_extract import _broken_amc, _bad_number, _unknown_bone, assert_bad_input, run_cli
-from test_take import REJECTIONS, write_case
+from dancing_points_addon.formats.take import Take, read_take, take_from_motion
+from helpers import REJECTIONS, assert_bad_input, bad_number, broken_amc, run_cli, unknown_bone, write_case
 
 
 def test_take(take_no="10", seconds=None):
@@ -34,7 +34,7 @@ test_take.__test__ = False  # a helper, not a test
 
 @pytest.fixture(scope="module")
 def synth():
-    return Synthesizer(threads=1)
+    return Synthesizer()
 
 
 @pytest.fixture(scope="module")
@@ -124,15 +124,15 @@ def test_tracking_gap_costs_under_1cm(synth, take08):
 def test_height_calibration_scales_the_output(synth, take10):
     take = take10[0]
     tall = Take(take.time, take.positions * 1.1, take.quats, {})
-    a = Synthesizer(threads=1, height=1.70).synthesize(take)
-    b = Synthesizer(threads=1, height=1.87).synthesize(tall)
+    a = Synthesizer(SynthesisOptions(height=1.70)).synthesize(take)
+    b = Synthesizer(SynthesisOptions(height=1.87)).synthesize(tall)
     # the same motion, scaled: identical up to the scale
     assert np.abs(b.leader_positions / 1.1 - a.leader_positions).max() < 1e-3
 
 
 def test_synthesize_cli_npz(tmp_path):
     from dancing_points_addon.skeleton import JOINT_NAMES
-    from dancing_points_addon.take import write_take
+    from dancing_points_addon.formats.take import write_take
 
     take = test_take("08", seconds=6)[0]
     src = tmp_path / "take.csv"
@@ -157,15 +157,15 @@ def test_synthesize_cli_npz(tmp_path):
 def test_synthesize_cli_bvh_reimports_in_blender(tmp_path):
     import bpy
 
-    from dancing_points_addon.bvh import load_bvh
+    from dancing_points_addon.formats.bvh import load_bvh
 
     take = test_take("08", seconds=4)[0]
     src = tmp_path / "take.csv"
-    from dancing_points_addon.take import write_take
+    from dancing_points_addon.formats.take import write_take
     write_take(src, take)
     res = run_cli("synthesize", src, "-o", tmp_path / "out.bvh")
     assert res.returncode == 0, res.stderr
-    ref = Synthesizer(threads=1).synthesize(read_take(src))
+    ref = Synthesizer().synthesize(read_take(src))
     worst = 0.0
     for role in ("leader", "follower"):
         path = tmp_path / f"out_{role}.bvh"
@@ -198,9 +198,9 @@ def test_synthesize_rejects_bad_takes(tmp_path, kind):
     assert_bad_input(run_cli("synthesize", src, "-o", out), out, f"{src}:{line}: ", frag)
 
 
-@pytest.mark.parametrize("edit", [_bad_number, _unknown_bone])
+@pytest.mark.parametrize("edit", [bad_number, unknown_bone])
 def test_synthesize_rejects_broken_amc(tmp_path, edit):
-    amc, lineno = _broken_amc(tmp_path, edit)
+    amc, lineno = broken_amc(tmp_path, edit)
     out = tmp_path / "out.bvh"
     assert_bad_input(run_cli("synthesize", amc, "-o", out), out, f"{amc}:{lineno}: ")
     assert not (tmp_path / "out_leader.bvh").exists()
@@ -224,7 +224,7 @@ def test_models_are_shipped():
 
 def test_hand_ik_puts_head_and_wrists_on_the_input(take10):
     take, true_l, _, _, _ = take10
-    d = Synthesizer(threads=1, hand_ik=True).synthesize(take)
+    d = Synthesizer(SynthesisOptions(hand_ik=True)).synthesize(take)
     err = np.linalg.norm(d.leader_positions[:, TRACKED] - true_l[:, TRACKED], axis=-1).mean(-1)
     score = np.arange(d.n_frames) >= F.FPS
     print(f"\nleader tracking error with head/wrist IK: {err[score].mean() * 100:.3f} cm")
@@ -237,10 +237,10 @@ def test_foot_locking_halves_skating(synth):
     figures differ slightly): with locking at most half of what it is
     without, and no more than the ground truth's own. Per take it is printed;
     a single take may exceed its own ground truth (take 08 does)."""
-    from dancing_points_addon.dataset import SALSA_TAKES
-    from dancing_points_addon.metrics import aggregate, foot_skating
+    from training.dataset import SALSA_TAKES
+    from training.metrics import aggregate, foot_skating
 
-    free_synth = Synthesizer(threads=1, foot_lock=False)
+    free_synth = Synthesizer(SynthesisOptions(foot_lock=False))
     sums = {"locked": [], "unlocked": [], "ground truth": []}
     for no in SALSA_TAKES:
         take, true_l, _, _, _ = test_take(no)
@@ -269,7 +269,7 @@ def test_five_minute_take_stays_together():
     idx = np.concatenate([np.arange(n), np.arange(n - 2, 0, -1)])
     idx = np.tile(idx, 5 * 60 * 60 // len(idx) + 1)[:5 * 60 * 60]
     long = Take(np.arange(len(idx)) / 60.0, take.positions[idx], take.quats[idx])
-    synth = Synthesizer(threads=1)
+    synth = Synthesizer()
     duet = synth.synthesize(long)
     lp, fp = duet.leader_positions, duet.follower_positions
     assert duet.n_frames >= 5 * 60 * 30 - 1

@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
-from dancing_points_addon.asf_amc import load_amc
-from dancing_points_addon.ik import bone_transforms, rest_starts, transforms_to_matrices
+from dancing_points_addon.formats.asf_amc import load_amc
+from dancing_points_addon.ik import bone_transforms, transforms_to_matrices
+from dancing_points_addon.skeleton import rest_starts
 from dancing_points_addon.skeleton import JOINT_INDEX, PARENTS
 from dancing_points_addon.skinning import lbs, lbs_frame, make_body
 

@@ -5,38 +5,16 @@ import numpy as np
 import pytest
 
 from conftest import SALSA, SOLO
-from dancing_points_addon.asf_amc import load_amc
+from helpers import (IDENT, REJECTIONS, axis_quat, good_lines, irregular_take, quat_angle_deg,
+                     row, write_case, write_lines)
+from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.errors import InputError
 from dancing_points_addon.resample import output_times, resample_motion, resample_take
 from dancing_points_addon.rotations import (axis_rotation, matrix_to_quat, quat_to_matrix,
                                             rotation_angle)
 from dancing_points_addon.skeleton import HEAD_BONE, TRACKED, Motion
-from dancing_points_addon.take import (COLUMNS, HEAD_DEVICE_OFFSET, Take, load_input,
+from dancing_points_addon.formats.take import (COLUMNS, HEAD_DEVICE_OFFSET, Take, load_input,
                                        read_take, take_from_motion, write_take)
-
-IDENT = [1.0, 0.0, 0.0, 0.0]
-
-
-def quat_angle_deg(q0, q1):
-    """Angle between the rotations of two quaternion arrays (degrees)."""
-    d = np.abs(np.sum(np.asarray(q0) * np.asarray(q1), axis=-1))
-    return np.degrees(2.0 * np.arccos(np.clip(d, 0.0, 1.0)))
-
-
-def row(t, head=(0.1, 1.6, 0.2), lhand=(-0.3, 1.1, 0.1), rhand=(0.3, 1.1, 0.1),
-        hq=(0, 0, 1, 0), lq=IDENT, rq=IDENT):
-    vals = [t, *head, *hq, *lhand, *lq, *rhand, *rq]
-    return ",".join(str(v) for v in vals)
-
-
-def good_lines(n=5):
-    return [row(i / 90.0) for i in range(n)]
-
-
-def write_lines(path, lines, header=",".join(COLUMNS), comments=("# height_m=1.78", "# a comment")):
-    path.write_text("\n".join(list(comments) + ([header] if header is not None else []) + list(lines)) + "\n")
-    return path
-
 
 def random_take(n=50, seed=0, gaps=True):
     rng = np.random.default_rng(seed)
@@ -163,90 +141,6 @@ def test_gaps_empty_field_and_nan(tmp_path):
 
 # --------------------------------------------------------------------------- rejections
 
-HEADER_LINE = 3  # two comment lines, then the header
-ROW1 = 4         # first data row
-
-
-def _replace_field(line, col, value):
-    f = line.split(",")
-    f[COLUMNS.index(col)] = value
-    return ",".join(f)
-
-
-def _case(kind):
-    """(header, data lines, expected line, message fragment) for a rejection."""
-    h = ",".join(COLUMNS)
-    L = good_lines(6)
-    if kind == "missing column":
-        return h.replace(",rhand_qz", ""), [ln.rsplit(",", 1)[0] for ln in L], HEADER_LINE, "missing header column rhand_qz"
-    if kind == "unknown column":
-        return h + ",extra", [ln + ",0" for ln in L], HEADER_LINE, "unknown header column 'extra'"
-    if kind == "duplicate column":
-        return h.replace("head_qw", "head_qx"), L, HEADER_LINE, "twice"
-    if kind == "no header":
-        return None, L, 3, "missing header line"
-    if kind == "too few fields":
-        L[2] = L[2].rsplit(",", 1)[0]
-        return h, L, ROW1 + 2, "21 fields"
-    if kind == "too many fields":
-        L[3] = L[3] + ",1"
-        return h, L, ROW1 + 3, "23 fields"
-    if kind == "non-numeric":
-        L[4] = _replace_field(L[4], "lhand_pz", "abc")
-        return h, L, ROW1 + 4, "non-numeric value 'abc' in column lhand_pz"
-    if kind == "non-numeric hex":
-        L[1] = _replace_field(L[1], "head_px", "0x10")
-        return h, L, ROW1 + 1, "non-numeric"
-    if kind == "non-numeric space":
-        L[1] = _replace_field(L[1], "rhand_py", "1 2")
-        return h, L, ROW1 + 1, "non-numeric"
-    if kind == "infinity":
-        L[2] = _replace_field(L[2], "rhand_qx", "inf")
-        return h, L, ROW1 + 2, "infinite value in column rhand_qx"
-    if kind == "overflow":
-        L[5] = _replace_field(L[5], "time", "1e400")
-        return h, L, ROW1 + 5, "infinite value in column time"
-    if kind == "far position":
-        L[3] = _replace_field(L[3], "lhand_py", "1000.5")
-        return h, L, ROW1 + 3, "lhand position is 1000.5"
-    if kind == "small quaternion":
-        L[1] = row(1 / 90, rq=(0.3, 0, 0, 0.3))
-        return h, L, ROW1 + 1, "rhand quaternion norm 0.424264"
-    if kind == "large quaternion":
-        L[2] = row(2 / 90, hq=(0, 0, 2.1, 0))
-        return h, L, ROW1 + 2, "head quaternion norm 2.1"
-    if kind == "equal time":
-        L[3] = row(2 / 90)
-        return h, L, ROW1 + 3, "not after"
-    if kind == "decreasing time":
-        L[4] = row(0.0)
-        return h, L, ROW1 + 4, "not after"
-    if kind == "missing time":
-        L[2] = _replace_field(L[2], "time", "")
-        return h, L, ROW1 + 2, "missing time value"
-    if kind == "one row":
-        return h, L[:1], ROW1, "at least 2"
-    if kind == "no rows":
-        return h, [], HEADER_LINE, "at least 2"
-    if kind == "earliest wins":
-        L[5] = row(5 / 90, hq=(0, 0, 9, 0))
-        L[2] = _replace_field(L[2], "head_pz", "-inf")
-        return h, L, ROW1 + 2, "infinite"
-    raise AssertionError(kind)
-
-
-REJECTIONS = ["missing column", "unknown column", "duplicate column", "no header", "too few fields",
-              "too many fields", "non-numeric", "non-numeric hex", "non-numeric space", "infinity",
-              "overflow", "far position", "small quaternion", "large quaternion", "equal time",
-              "decreasing time", "missing time", "one row", "no rows", "earliest wins"]
-
-
-def write_case(path, kind):
-    header, lines, line, frag = _case(kind)
-    write_lines(path, lines, header=header)
-    return line, frag
-
-
 @pytest.mark.parametrize("kind", REJECTIONS)
 def test_rejections_name_file_and_line(tmp_path, kind):
     p = tmp_path / "bad.csv"
@@ -317,26 +211,6 @@ def test_output_times():
     assert len(output_times(t, 30.0)) == 30
 
 
-def _axis_quat(axis, angle):
-    axis = np.asarray(axis, float) / np.linalg.norm(axis)
-    half = np.asarray(angle)[..., None] / 2.0
-    return np.concatenate([np.cos(half), np.sin(half) * axis], axis=-1)
-
-
-def irregular_take(n=400, seed=1):
-    """A 90 Hz take with jittered times, linear positions and constant-rate turns."""
-    rng = np.random.default_rng(seed)
-    t = 0.25 + np.arange(n) / 90.0 + rng.uniform(-0.003, 0.003, n)
-    A = rng.uniform(-1, 1, (3, 3))
-    B = rng.uniform(-2, 2, (3, 3))
-    pos = A[None] + B[None] * t[:, None, None]
-    axes = [(0, 1, 0), (1, 2, 0.5), (-0.3, 0.2, 1)]
-    rates = [2.0, -5.0, 9.0]  # rad/s; several full turns over the take
-    q = np.stack([_axis_quat(ax, w * t) for ax, w in zip(axes, rates)], axis=1)
-    q = matrix_to_quat(quat_to_matrix(q))  # canonical w >= 0: sign flips between rows
-    return Take(t, pos, q, {"height_m": 1.8}, "irregular"), (A, B, axes, rates)
-
-
 def test_resample_irregular_take_closed_form():
     take, (A, B, axes, rates) = irregular_take()
     out = resample_take(take, 30.0)
@@ -346,7 +220,7 @@ def test_resample_irregular_take_closed_form():
     assert out.time[-1] <= t1
     exp_pos = A[None] + B[None] * out.time[:, None, None]
     pos_err = np.abs(out.positions - exp_pos).max()
-    exp_q = np.stack([_axis_quat(ax, w * out.time) for ax, w in zip(axes, rates)], axis=1)
+    exp_q = np.stack([axis_quat(ax, w * out.time) for ax, w in zip(axes, rates)], axis=1)
     ang_err = quat_angle_deg(out.quats, exp_q).max()
     print(f"\nirregular 90 Hz -> 30 Hz: position {pos_err:.2e} m, angle {ang_err:.2e} deg")
     assert pos_err < 1e-12
@@ -358,7 +232,7 @@ def test_resample_irregular_take_closed_form():
 def test_resample_slerp_midpoint():
     """Half-way between two generic rotations: half the relative angle, shortest arc."""
     q0 = matrix_to_quat(axis_rotation("X", 0.3) @ axis_rotation("Z", -1.1))
-    rel = _axis_quat((0.2, 0.9, -0.4), 2.6)
+    rel = axis_quat((0.2, 0.9, -0.4), 2.6)
     q1 = matrix_to_quat(quat_to_matrix(rel) @ quat_to_matrix(q0))
     q1 = -q1  # the other sign: slerp must still take the short way
     t = np.array([0.0, 1 / 15])

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from dancing_points_addon import features as F
-from dancing_points_addon.dataset import build_clips, split_range
+from training.dataset import build_clips, split_range
 from training import train as T
-from training.data import mapping_samples, tracking_samples
+from training.data import default_pose, mapping_samples, tracking_samples
 from training.export import export, mapping_keep, tracker_keep
 from training.model import MappingNet, TrackingNet, VanillaTracker
 
@@ -34,7 +34,7 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     info = T.train_model(model, x[:512], y[:512], epochs=2, batch=64)
     assert np.isfinite(info["final"]["rec"])
     path = str(tmp_path / f"{name}.onnx")
-    extra = {"default_pose": T.default_pose(x)} if kind != "mapping" else None
+    extra = {"default_pose": default_pose(x)} if kind != "mapping" else None
     export(model, name, path, n_in, extra, weights="fp32")
     m = onnx.load(path)
     onnx.checker.check_model(m)

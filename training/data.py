@@ -118,9 +118,9 @@ def next_pose_features(y_key1: np.ndarray) -> np.ndarray:
     from dancing_points_addon.representation import rot6d, rot6d_to_matrix
 
     n = len(y_key1)
-    pos = y_key1[:, 4:97]
-    rot = rot6d(rot6d_to_matrix(y_key1[:, 97:283].reshape(n, F.N_JOINTS, 6).astype(np.float64)))
-    con = np.clip(y_key1[:, 283:287], 0.0, 1.0)
+    pos = y_key1[:, F.KEY_POS]
+    rot = rot6d(rot6d_to_matrix(y_key1[:, F.KEY_ROT].reshape(n, F.N_JOINTS, 6).astype(np.float64)))
+    con = np.clip(y_key1[:, F.KEY_CON], 0.0, 1.0)
     return np.concatenate([pos, rot.reshape(n, -1), con], axis=1).astype(np.float32)
 
 
@@ -160,7 +160,7 @@ def time_warp(clips, rates):
     frame: 1.1 is 10 % faster), by the runtime's resampling (positions linear,
     rotations by slerp); root frames and contacts derived again. For the
     mapping network: partners dance the same figures to other tempi."""
-    from dancing_points_addon.dataset import Clip, Dancer
+    from training.dataset import Clip, Dancer
     from dancing_points_addon.resample import resample_motion
     from dancing_points_addon.skeleton import Motion
 
@@ -170,3 +170,15 @@ def time_warp(clips, rates):
 
     return [Clip(f"{c.name}x{r:g}", warp(c.leader, r), warp(c.follower, r), c.mirrored)
             for c in clips if c.follower is not None for r in rates]
+
+
+def default_pose(x: np.ndarray, where=None, clips=None) -> list:
+    """Pose features of the train sample nearest the mean pose (normalised): the
+    runtime's start-up pose, placed under the head. Its skeleton becomes the
+    runtime's, so it is drawn from the unmirrored clips (a mirrored body has its
+    left and right bone lengths swapped)."""
+    if where is not None:
+        x = x[~np.array([clips[int(c)].mirrored for c in where[:, 0]])]
+    pose = x[:, :F.POSE_DIM].astype(np.float64)
+    z = (pose - pose.mean(0)) / (pose.std(0) + 1e-6)
+    return pose[int(np.argmin((z ** 2).sum(1)))].round(6).tolist()

@@ -20,13 +20,14 @@ import time
 import numpy as np
 
 from dancing_points_addon import features as F
-from dancing_points_addon import metrics as M
-from dancing_points_addon.asf_amc import load_amc
-from dancing_points_addon.dataset import FOLLOWER, LEADER, SALSA_TAKES, split_range
-from dancing_points_addon.representation import root_from_head, root_from_motion, to_local, to_world
-from dancing_points_addon.runtime import MODEL_FILES, OnnxNet, Synthesizer
+from training import metrics as M
+from dancing_points_addon.formats.asf_amc import load_amc
+from training.dataset import FOLLOWER, LEADER, SALSA_TAKES, split_range
+from dancing_points_addon.representation import root_from_head, to_local, to_world
+from dancing_points_addon.nets import OnnxNet, load_nets
+from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import TRACKED, bone_lengths_from_positions
-from dancing_points_addon.take import read_take, take_from_motion, write_take
+from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
 
 SCORE_FROM = 1.0  # seconds
 
@@ -116,7 +117,7 @@ class FixedPose:
         self.offset = follower_offset
 
     def run(self, take):
-        from dancing_points_addon.representation import rot6d_to_matrix, root_compose, rot_to_world
+        from dancing_points_addon.representation import root_compose, rot_to_world
         from dancing_points_addon.resample import resample_take
         from dancing_points_addon.rotations import quat_to_matrix
 
@@ -124,8 +125,8 @@ class FixedPose:
         roots = root_from_head(tk.positions[:, 0], quat_to_matrix(tk.quats[:, 0]))
         out = []
         for pose, rts in ((self.lead_pose, roots), (self.fol_pose, root_compose(roots, self.offset[None]))):
-            p = pose[:93].reshape(31, 3)
-            r = rot6d_to_matrix(pose[93:93 + 186].reshape(31, 6))
+            p = F.pose_positions(pose)
+            r = F.pose_rotations(pose)
             pw = to_world(np.broadcast_to(p, (len(rts), 31, 3)), rts)
             rw = rot_to_world(np.broadcast_to(r, (len(rts), 31, 3, 3)), rts)
             out.append((pw, rw))
@@ -133,7 +134,7 @@ class FixedPose:
 
 
 def mean_follower_offset(data_dir):
-    from dancing_points_addon.dataset import load_clips
+    from training.dataset import load_clips
     from dancing_points_addon.representation import root_relative
 
     clips = load_clips(data_dir, "train", mirror_aug=True)
@@ -312,9 +313,9 @@ def main(argv=None):
 
     takes = tuple(args.takes.split(",")) if args.takes else SALSA_TAKES
     segments = list(test_segments(args.data, takes, args.split))
-    nets = {k: OnnxNet(os.path.join(args.models, f)) for k, f in MODEL_FILES.items()}
-    lock = not args.no_foot_lock
-    systems = {"full": lambda: Synthesizer(nets=nets, foot_lock=lock)}
+    nets = load_nets(args.models)
+    opts = SynthesisOptions(foot_lock=not args.no_foot_lock)
+    systems = {"full": lambda: Synthesizer(opts, nets=nets)}
     partial = {}
     if args.ablations:
         for tag in ("vanilla", "pastinput"):
@@ -330,11 +331,10 @@ def main(argv=None):
                 # separation and holds (built on the mapping's prediction) go with it
                 kw = {"follower": None} if tag == "pastinput" and "follower" not in partial[tag] else {}
                 systems[{"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}[tag]] = \
-                    (lambda a=abl, c=cls, kw=kw: c(nets=a, foot_lock=lock, **kw))
+                    (lambda a=abl, c=cls, kw=kw: c(opts, nets=a, **kw))
     if not args.only_full:
         # (c): no follower mapping, so none of the placement built on it either
-        systems["(c) follower from leader trajectory"] = lambda: LeaderTrajSynth(nets=nets, foot_lock=lock,
-                                                                                 follower=None)
+        systems["(c) follower from leader trajectory"] = lambda: LeaderTrajSynth(opts, nets=nets, follower=None)
     names = {"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -352,7 +352,7 @@ def main(argv=None):
             print("noise", json.dumps({k: round(v, 3) for k, v in results["full"].items() if k.startswith("noise")}),
                   flush=True)
         if not args.only_full:
-            fixed = FixedPose(Synthesizer(nets=nets, foot_lock=False), mean_follower_offset(args.data))
+            fixed = FixedPose(Synthesizer(SynthesisOptions(foot_lock=False), nets=nets), mean_follower_offset(args.data))
             runs, info = run_system(None, segments, tmp, fixed=fixed)
             results["(d) fixed pose under the head"] = {**score(runs), **stability(runs), **info}
             print("(d)", json.dumps({k: round(v, 3) if isinstance(v, float) else v

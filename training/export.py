@@ -168,10 +168,9 @@ def main(argv=None):
                 f"tracker_{role}"
             meta["role"] = role
             if args.default_pose_from:
-                from dancing_points_addon.dataset import load_clips
+                from training.dataset import load_clips
 
-                from .data import tracking_samples
-                from .train import default_pose
+                from .data import default_pose, tracking_samples
 
                 clips = clips or load_clips(args.default_pose_from, "train", mirror_aug=True)
                 x, _, where = tracking_samples(clips, role, past_input=meta.get("ablation") == "b")

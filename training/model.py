@@ -14,6 +14,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from dancing_points_addon import features as F
+
 
 def mlp(n_in: int, n_out: int, hidden: int, layers: int = 6, dropout: float = 0.1) -> nn.Sequential:
     mods = []
@@ -93,7 +95,8 @@ class _Net(nn.Module):
 
     # Perturbation scale of the current-pose input, per feature group, in the
     # features' own units: metres for positions, 6D entries, contact values.
-    POSE_NOISE_UNITS = ((0, 93, 0.04), (93, 279, 0.08), (279, 283, 0.3))
+    POSE_NOISE_UNITS = ((F.POSE_POS.start, F.POSE_POS.stop, 0.04), (F.POSE_ROT.start, F.POSE_ROT.stop, 0.08),
+                        (F.POSE_CON.start, F.POSE_CON.stop, 0.3))
 
     def corrupt_pose(self, x, force=False):
         """Training only: perturb the *current pose* input with Gaussian noise whose

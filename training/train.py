@@ -22,23 +22,11 @@ import numpy as np
 import torch
 
 from dancing_points_addon import features as F
-from dancing_points_addon.dataset import load_clips
+from training.dataset import load_clips
 
-from .data import mapping_samples, rollout_states, time_warp, tracking_samples
+from .data import default_pose, mapping_samples, rollout_states, time_warp, tracking_samples
 from .export import export
 from .model import MappingNet, TrackingNet, VanillaTracker
-
-
-def default_pose(x: np.ndarray, where=None, clips=None) -> list:
-    """Pose features of the train sample nearest the mean pose (normalised): the
-    runtime's start-up pose, placed under the head. Its skeleton becomes the
-    runtime's, so it is drawn from the unmirrored clips (a mirrored body has its
-    left and right bone lengths swapped)."""
-    if where is not None:
-        x = x[~np.array([clips[int(c)].mirrored for c in where[:, 0]])]
-    pose = x[:, :F.POSE_DIM].astype(np.float64)
-    z = (pose - pose.mean(0)) / (pose.std(0) + 1e-6)
-    return pose[int(np.argmin((z ** 2).sum(1)))].round(6).tolist()
 
 
 def save_checkpoint(model, path, meta):
@@ -198,7 +186,7 @@ def main(argv=None):
         report["models"]["mapping"] = info
     mapping_fn = None
     if cfg["runtime_keys"] and only & {"leader", "follower", "vanilla"}:
-        from dancing_points_addon.runtime import OnnxNet
+        from dancing_points_addon.nets import OnnxNet
         mapping_fn = OnnxNet(os.path.join(args.out, "mapping.onnx"), threads=max(1, torch.get_num_threads()))
 
     def tracker(cls, role, name, out_path, past_input=False, extra=None):
@@ -233,7 +221,7 @@ def main(argv=None):
             xr = x[idx].copy()
             xr[:, :F.POSE_DIM] = poses
             log(f"  rollout states: {len(idx)}; mean pose drift "
-                f"{float(np.abs(poses[:, :93] - x[idx, :93]).mean()) * 100:.2f} cm per coordinate")
+                f"{float(np.abs(poses[:, F.POSE_POS] - x[idx, F.POSE_POS]).mean()) * 100:.2f} cm per coordinate")
             x2, y2 = np.concatenate([x, xr]), np.concatenate([y, y[idx]])
             info2 = train_model(m, x2, y2, cfg["rollout_epochs"], device=device, log=log, seed=args.seed + 1,
                                 refit=False)  # keep stage 1's normalisation: the weights were trained on it

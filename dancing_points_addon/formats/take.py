@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
-from .rotations import axis_rotation, matrix_to_quat
-from .skeleton import HEAD_BONE, TRACKED, Motion
+from ..errors import InputError
+from ..rotations import axis_rotation, matrix_to_quat
+from ..skeleton import HEAD_BONE, TRACKED, Motion
 
 DEVICES = ("head", "lhand", "rhand")
 DEVICE_FIELDS = ("px", "py", "pz", "qw", "qx", "qy", "qz")

@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .representation import CONTACT_HEIGHT, CONTACT_SPEED, floor_levels, foot_speeds, segments_gap
-from .skeleton import FEET, HIPS, TRACKED, JOINT_INDEX
+from dancing_points_addon.representation import CONTACT_HEIGHT, CONTACT_SPEED, floor_levels, foot_speeds, segments_gap
+from dancing_points_addon.skeleton import FEET, HIPS, JOINT_INDEX, TRACKED, WRISTS
 
 SKATE_HEIGHT = 0.025
-WRISTS = (JOINT_INDEX["lwrist"], JOINT_INDEX["rwrist"])
 
 
 def _masked(values, mask):

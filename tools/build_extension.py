@@ -1,26 +1,29 @@
 """Build the extension zips with Blender's own tool, one per platform, with the
 ONNX Runtime wheels (and their dependencies, never numpy: Blender ships it).
 
-    python -m dancing_points_addon build-extension [-o dist] [--no-wheels]
+    python -m tools.build_extension [-o dist] [--platform NAME] [--no-wheels]
 
 Steps: stage the tracked files of the checkout (``git ls-files``; the models
 are tracked) in a temporary folder, download the wheels for each platform with
 pip into ``cache/wheels`` (reused on the next build), list them in the staged
 manifest, then run Blender's ``extension build --split-platforms`` and
 ``extension validate`` on every zip. Blender's tool is reached through the
-``bpy`` module (``bl_pkg``) in a subprocess, so this module stays bpy-free.
+``bpy`` module (``bl_pkg``) in a subprocess.
+
+A developer tool, not part of the extension (``/tools/`` is excluded from the
+zip); it may import the core, never the reverse.
 """
 from __future__ import annotations
 
+import argparse
 import glob
 import os
-import re
 import shutil
 import subprocess
 import sys
 import tempfile
 
-from .errors import InputError
+from dancing_points_addon.errors import InputError, one_line
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 ONNXRUNTIME = "onnxruntime==1.22.1"
@@ -128,6 +131,23 @@ def build(out_dir: str = "dist", wheels: bool = True, platforms=None, cache_dir=
         return zips
 
 
-def zip_platform(path: str) -> str | None:
-    m = re.search(r"-(linux-x64|windows-x64|macos-arm64|macos-x64)\.zip$", path)
-    return m.group(1) if m else None
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m tools.build_extension",
+                                 description="Build the extension with Blender's own 'extension build', one zip per "
+                                             "platform with the ONNX Runtime wheels bundled, and validate each zip.")
+    ap.add_argument("-o", "--output", default="dist", metavar="DIR", help="output folder (default dist)")
+    ap.add_argument("--platform", action="append", metavar="NAME", choices=list(PLATFORMS),
+                    help="linux-x64, windows-x64 or macos-arm64 (repeatable; default all three)")
+    ap.add_argument("--no-wheels", action="store_true", help="one zip without bundled wheels")
+    args = ap.parse_args(argv)
+    try:
+        zips = build(args.output, wheels=not args.no_wheels, platforms=args.platform or list(PLATFORMS))
+    except InputError as exc:
+        print(f"error: {one_line(exc)}", file=sys.stderr)
+        return 2
+    print("\n".join(zips))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -54,9 +54,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .errors import InputError, read_text
-from .rotations import euler_to_matrix, matrix_to_euler
-from .skeleton import CMU_BVH_NAMES, JOINT_NAMES, PARENTS, Motion
+from ..errors import InputError, read_text
+from ..rotations import euler_to_matrix, matrix_to_euler
+from .naming import MIXAMO_CORE, TRACKED_ALIASES, bone_key, first_alias, index_by_key
+from ..skeleton import CMU_BVH_NAMES, JOINT_NAMES, PARENTS, Motion
 
 _CHANNELS = {
     "xposition": "Xposition", "yposition": "Yposition", "zposition": "Zposition",
@@ -122,9 +123,9 @@ class BvhData:
         case, ``_-. `` ignored). ``KeyError`` if absent."""
         if name in self.names:
             return self.names.index(name)
-        key = _norm(name)
+        key = bone_key(name)
         for i, n in enumerate(self.names):
-            if _norm(n) == key:
+            if bone_key(n) == key:
                 return i
         raise KeyError(name)
 
@@ -559,47 +560,26 @@ def unit_scale(data: BvhData, units="auto") -> float:
 # --------------------------------------------------------------------------- naming
 
 
-def _norm(name: str) -> str:
-    base = re.split(r"[:|]", name)[-1]
-    return re.sub(r"[\s_\-.]", "", base).lower()
-
-
-_MIXAMO_CORE = ("hips", "spine", "head", "leftarm", "rightarm", "leftforearm", "rightforearm",
-                "lefthand", "righthand")
-_ALIASES = {
-    "head": ("head",),
-    "lhand": ("lefthand", "lhand", "handl", "handleft", "leftwrist", "lwrist", "wristl"),
-    "rhand": ("righthand", "rhand", "handr", "handright", "rightwrist", "rwrist", "wristr"),
-}
-
-
-def _index_by_norm(data: BvhData) -> dict:
-    out = {}
-    for i, n in enumerate(data.names):
-        out.setdefault(_norm(n), i)
-    return out
-
-
 def detect_naming(data: BvhData):
     """``'cmu'``, ``'mixamo'``, ``'generic'`` (head and hands found) or ``None``."""
-    idx = _index_by_norm(data)
-    if all(_norm(v) in idx for v in CMU_BVH_NAMES.values()):
+    idx = index_by_key(data.names)
+    if all(bone_key(v) in idx for v in CMU_BVH_NAMES.values()):
         return "cmu"
-    if all(k in idx for k in _MIXAMO_CORE):
+    if all(k in idx for k in MIXAMO_CORE):
         return "mixamo"
-    if all(any(a in idx for a in al) for al in _ALIASES.values()):
+    if all(any(a in idx for a in al) for al in TRACKED_ALIASES.values()):
         return "generic"
     return None
 
 
 def _tracked_joints(data: BvhData, naming: str):
     """Indices (position joints, rotation joints) for head, lhand, rhand."""
-    idx = _index_by_norm(data)
+    idx = index_by_key(data.names)
     if naming == "cmu":
-        pos = [idx[_norm(CMU_BVH_NAMES[n])] for n in ("head", "lhand", "rhand")]
-        rot = [idx[_norm(CMU_BVH_NAMES[n])] for n in ("head", "lwrist", "rwrist")]
+        pos = [idx[bone_key(CMU_BVH_NAMES[n])] for n in ("head", "lhand", "rhand")]
+        rot = [idx[bone_key(CMU_BVH_NAMES[n])] for n in ("head", "lwrist", "rwrist")]
         return pos, rot
-    found = [next(idx[a] for a in _ALIASES[k] if a in idx) for k in ("head", "lhand", "rhand")]
+    found = [first_alias(idx, TRACKED_ALIASES[k]) for k in ("head", "lhand", "rhand")]
     return found, found
 
 
@@ -671,13 +651,13 @@ def bvh_to_motion(data: BvhData, scale: float | None = None, units="auto", up="a
     vectors are the rest offsets of those children (root: zero).
     """
     if detect_naming(data) != "cmu":
-        idx = _index_by_norm(data)
-        missing = [v for v in CMU_BVH_NAMES.values() if _norm(v) not in idx]
+        idx = index_by_key(data.names)
+        missing = [v for v in CMU_BVH_NAMES.values() if bone_key(v) not in idx]
         raise InputError(data.path, "not a CMU-skeleton BVH (missing joints " + ", ".join(missing[:6])
                          + (", ..." if len(missing) > 6 else "") + "); only its tracked points can be used",
                          data.joint_lines[0] if data.joint_lines else None)
-    idx = _index_by_norm(data)
-    bj = np.array([idx[_norm(CMU_BVH_NAMES[n])] for n in JOINT_NAMES])
+    idx = index_by_key(data.names)
+    bj = np.array([idx[bone_key(CMU_BVH_NAMES[n])] for n in JOINT_NAMES])
     for n in range(1, len(JOINT_NAMES)):
         if data.parents[bj[n]] != bj[PARENTS[n]]:
             raise InputError(data.path, f"joint {data.names[bj[n]]!r} should be a child of "

@@ -23,13 +23,15 @@ import struct
 
 import numpy as np
 
+from ..errors import UserError
+
 EXTENSION = "EXT_meshopt_compression"
 _GLB_MAGIC = 0x46546C67
 _CHUNK_JSON = 0x4E4F534A
 _CHUNK_BIN = 0x004E4942
 
 
-class MeshoptError(ValueError):
+class MeshoptError(UserError, ValueError):
     """A malformed or unsupported compressed stream (one line)."""
 
 

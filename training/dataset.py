@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .asf_amc import load_amc
-from .representation import contact_labels, root_from_motion
-from .skeleton import MIRROR
+from dancing_points_addon.formats.asf_amc import load_amc
+from dancing_points_addon.representation import contact_labels, root_from_motion
+from dancing_points_addon.skeleton import MIRROR
 
 SALSA_TAKES = tuple(f"{i:02d}" for i in range(1, 14))
 LEADER, FOLLOWER = "60", "61"

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError, read_text
-from .rotations import euler_to_matrix
-from .skeleton import JOINT_NAMES, Motion, forward_kinematics
+from ..errors import InputError, read_text
+from ..rotations import euler_to_matrix
+from ..skeleton import JOINT_NAMES, Motion, forward_kinematics
 
 INCH = 0.0254
 

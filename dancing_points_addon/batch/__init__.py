@@ -1,0 +1,149 @@
+"""Headless batch conversion: a folder of takes in, baked duets out, on every core.
+
+``python -m dancing_points_addon batch IN... -o OUT_DIR --format blend|fbx|bvh|npz``
+and, inside Blender, ``blender --background --command dancing_points convert ...``
+(``operators/batch_cli.py``) both take :func:`add_arguments` and run :func:`run`:
+
+* :mod:`.plan`: the input files, one output per take named after it, the
+  temporary names the workers write;
+* :mod:`.scheduler`: the parent, running ``--jobs`` worker processes
+  (:mod:`.worker`, talking :mod:`.messages`), committing finished outputs,
+  stopping on Ctrl-C;
+* :mod:`.progress`: the progress bar (stderr) and a result line per file (stdout);
+* :mod:`.report`: the JSON report and the summary line;
+* :mod:`.options`: formats, exit statuses, the options a job carries.
+
+A bad file is reported and skipped, the rest go on; the exit status is 1 if any
+file failed. The package never imports ``bpy``: the Blender side hands its
+converter to the worker loop (:func:`.worker.worker_main`).
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import sys
+import time
+
+from ..argtypes import height_metres, positive_float, positive_int
+from ..errors import InputError, one_line
+from .options import (BPY_FORMATS, BPY_INPUTS, CORE_INPUTS, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED,
+                      FORMATS, check_rigs, default_jobs, job_options, resolve_model_dir, synthesis_options)
+from .plan import (PART, discover, make_output_dirs, output_bases, output_kinds, plan, remove_empty_dirs, remove_temps,
+                   temp_leftovers, temp_path)
+from .progress import Progress, eta, fmt_duration, result_line
+from .report import REPORT_NAME, build_report, summary_line, write_report
+from .scheduler import Batch
+from .worker import worker_main, write_duet_files
+
+__all__ = ["add_arguments", "run",
+           "FORMATS", "BPY_FORMATS", "CORE_INPUTS", "BPY_INPUTS", "REPORT_NAME", "PART",
+           "discover", "output_bases", "output_kinds", "plan", "temp_path", "temp_leftovers", "remove_temps",
+           "Progress", "eta", "fmt_duration", "synthesis_options", "worker_main", "write_duet_files"]
+
+
+def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> None:
+    """The batch options (shared by the ``batch`` subcommand and Blender's ``convert``)."""
+    from ..nets import MODEL_ENV
+
+    p.add_argument("inputs", nargs="+", metavar="IN",
+                   help="take files (.csv), BVH (.bvh) or CMU AMC (.amc) files, or folders searched "
+                        "recursively for them")
+    p.add_argument("-o", "--output-dir", required=True, metavar="OUT_DIR",
+                   help="folder for the outputs (created if missing)")
+    p.add_argument("--format", choices=FORMATS, default=default_format,
+                   help=f"output format (default {default_format}): npz = SPEC §4 arrays, bvh = "
+                        "NAME_leader.bvh + NAME_follower.bvh, blend = a scene with the baked duet, "
+                        "fbx = the two skinned armatures with their animation")
+    p.add_argument("-j", "--jobs", type=positive_int, default=None, metavar="N",
+                   help=f"worker processes (default: the number of cores, {default_jobs()} here)")
+    p.add_argument("--render", action="store_true",
+                   help="also render a Workbench preview video NAME.mp4 (needs Blender's bpy)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument("--resume", action="store_true",
+                   help="skip the takes whose outputs already exist (e.g. after an interrupted run)")
+    p.add_argument("--report", default=None, metavar="PATH",
+                   help=f"JSON report (default: OUT_DIR/{REPORT_NAME})")
+    p.add_argument("--models", default=None, metavar="DIR",
+                   help=f"folder with the ONNX models (default: ${MODEL_ENV}, else the bundled models/)")
+    p.add_argument("--threads", type=positive_int, default=1, metavar="N",
+                   help="onnxruntime threads per worker (default 1)")
+    p.add_argument("--input-fps", type=positive_float, default=None, metavar="F",
+                   help="override every input's frame rate")
+    p.add_argument("--asf", default=None, metavar="PATH",
+                   help="ASF skeleton for the AMC inputs (default: found beside each)")
+    p.add_argument("--height", type=height_metres, default=None, metavar="H",
+                   help="the leader's height in metres (default: the take's height_m, else estimated)")
+    p.add_argument("--no-foot-lock", action="store_true", help="turn contact-based foot locking off")
+    p.add_argument("--no-hand-ik", action="store_true",
+                   help="leave the leader's head and wrists where the network puts them (no IK onto the input)")
+    p.add_argument("--leader-rig", default=None, metavar="FILE",
+                   help="also retarget the leader onto the armature of this .blend, .glb/.gltf or .fbx file "
+                        "(formats blend and fbx, --render; a file without an armature fails each take)")
+    p.add_argument("--follower-rig", default=None, metavar="FILE",
+                   help="the same for the follower")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (result lines only)")
+
+
+def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
+    """The batch conversion for parsed :func:`add_arguments` options; returns the
+    exit status (0 all done, 1 a file failed, 2 bad options, 130/143 stopped).
+    Raises :class:`InputError` for a bad command line (no inputs, no models...).
+    ``worker_cmd``: how to start a worker (default: :func:`.worker.worker_command`)."""
+    out = out if out is not None else sys.stdout
+    err = err if err is not None else sys.stderr
+    t_start = time.perf_counter()
+    started = datetime.datetime.now().astimezone().isoformat(timespec="seconds")
+    fmt = args.format
+    jobs = args.jobs or default_jobs()
+    out_dir = os.path.abspath(os.path.expanduser(args.output_dir))
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise InputError(args.output_dir, "output path exists and is not a folder")
+    needs_bpy = fmt in BPY_FORMATS or args.render
+    if needs_bpy and not in_blender:
+        import importlib.util
+        if importlib.util.find_spec("bpy") is None:  # (only looks: the parent never imports it)
+            raise InputError(None, f"--format {fmt}{' --render' if args.render else ''} needs Blender: "
+                                   f"install the bpy module or run blender --background --command "
+                                   f"dancing_points convert ...")
+    entries = discover(args.inputs, BPY_INPUTS if needs_bpy else CORE_INPUTS, exclude=[out_dir])
+    if not entries:
+        exts = ", ".join(BPY_INPUTS if needs_bpy else CORE_INPUTS)
+        raise InputError(" ".join(map(str, args.inputs)), f"no input files found (looked for {exts})")
+    model_dir = resolve_model_dir(args.models)
+    if args.asf and not os.path.isfile(args.asf):
+        raise InputError(args.asf, "no such ASF file")
+    check_rigs(args, needs_bpy)
+    if args.asf and needs_bpy:
+        raise InputError(args.asf, "--asf works with the npz and bvh formats only (without --render); "
+                                   "put the ASF beside the AMC files instead")
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+    except OSError as exc:
+        raise InputError(args.output_dir, f"cannot create the output folder ({exc.strerror or exc})") from None
+    report_path = os.path.abspath(args.report) if args.report else os.path.join(out_dir, REPORT_NAME)
+    tasks = plan(entries, out_dir, fmt, args.render, args.overwrite, args.resume)
+    made = make_output_dirs(tasks)  # sub-folders made for the outputs: removed again if they stay empty
+    n_run = sum(t.status == "pending" for t in tasks)
+    prog = Progress(n_run, stream=err, out=out, enabled=not args.no_progress)
+    for t in tasks:  # decided before any work: report now
+        if t.status != "pending":
+            prog.result(result_line(t, out_dir))
+    batch = Batch(tasks, min(jobs, max(n_run, 1)), job_options(args, model_dir), fmt, worker_cmd, prog, out_dir)
+    outcome = batch.run()
+    remove_empty_dirs(made)
+    seconds = time.perf_counter() - t_start
+    report = build_report(tasks, fmt, out_dir, batch.jobs, model_dir, started, seconds, outcome, batch.fatal)
+    try:
+        write_report(report_path, report)
+    except InputError as exc:
+        print(f"error: cannot write the report: {one_line(exc)}", file=err)
+        report_path = None
+    print(summary_line(report, outcome, seconds, report_path), file=out, flush=True)
+    if batch.fatal:
+        print(f"error: {batch.fatal}", file=err)
+    if outcome != "done":
+        print(f"error: {outcome}; no partial outputs were left; re-run with --resume to convert the rest",
+              file=err)
+        return EXIT_TERMINATED if outcome == "terminated" else EXIT_INTERRUPTED
+    return EXIT_FAILED if report["counts"]["failed"] else EXIT_OK

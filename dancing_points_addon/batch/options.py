@@ -1,0 +1,76 @@
+"""What a batch is asked to do: formats, input types, exit statuses, and the
+options each job carries to its worker.
+
+The parent turns the parsed command line into one plain dict, :func:`job_options`
+(sent with every job, see :mod:`.messages`); a worker turns it back into
+:class:`~..runtime.SynthesisOptions` with :func:`synthesis_options` (the core
+converter and the Blender side's ``convert_job`` alike).
+"""
+from __future__ import annotations
+
+import os
+
+from ..errors import InputError
+
+FORMATS = ("npz", "bvh", "blend", "fbx")
+BPY_FORMATS = ("blend", "fbx")  # (and --render) need Blender's bpy in the workers
+CORE_INPUTS = (".csv", ".bvh", ".amc")
+BPY_INPUTS = CORE_INPUTS + (".fbx",)
+RIG_TYPES = (".blend", ".glb", ".gltf", ".fbx")
+EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 130, 143
+
+
+def default_jobs() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def resolve_model_dir(explicit=None):
+    from ..nets import resolve_model_dir
+
+    try:
+        return resolve_model_dir(explicit)
+    except InputError as exc:
+        raise InputError(exc.path, exc.reason + "; give the folder with --models") from None
+
+
+def _abs(path):
+    return os.path.abspath(os.path.expanduser(path)) if path else None
+
+
+def check_rigs(args, needs_bpy) -> None:
+    """The ``--leader-rig`` / ``--follower-rig`` files exist, have a rig file type
+    and come with an output that holds armatures (blend, fbx, --render)."""
+    for opt in ("leader_rig", "follower_rig"):
+        path = getattr(args, opt, None)
+        if not path:
+            continue
+        flag = "--" + opt.replace("_", "-")
+        if not os.path.isfile(os.path.expanduser(path)):
+            raise InputError(path, f"no such file ({flag})")
+        if os.path.splitext(path)[1].lower() not in RIG_TYPES:
+            raise InputError(path, f"{flag} takes a {', '.join(RIG_TYPES)} file")
+        if not needs_bpy:
+            raise InputError(path, f"{flag} works with the blend and fbx formats or --render "
+                                   f"(npz and bvh hold the Dancing Points skeleton only)")
+
+
+def job_options(args, model_dir) -> dict:
+    """The options of every job (a JSON-able dict) from the parsed command line."""
+    return {"models": model_dir, "threads": int(args.threads or 1),
+            "height": args.height, "input_fps": args.input_fps,
+            "asf": os.path.abspath(args.asf) if args.asf else None,
+            "no_foot_lock": bool(args.no_foot_lock), "no_hand_ik": bool(args.no_hand_ik),
+            "leader_rig": _abs(getattr(args, "leader_rig", None)),
+            "follower_rig": _abs(getattr(args, "follower_rig", None))}
+
+
+def synthesis_options(o: dict, take_height=None):
+    """The :class:`~..runtime.SynthesisOptions` of a job's options (``job_options``)."""
+    from ..runtime import SynthesisOptions
+
+    return SynthesisOptions(models=o["models"], threads=int(o.get("threads") or 1),
+                            height=o.get("height") or take_height, foot_lock=not o.get("no_foot_lock"),
+                            hand_ik=not o.get("no_hand_ik"))

@@ -1,0 +1,100 @@
+"""The shipped networks: where they are, and one loader with one cache.
+
+Every caller (the command line, the batch workers, the Blender operators, the
+benchmark, training's evaluation) gets its networks from :func:`load_nets`; a
+process loads a folder of models once per thread count.
+"""
+from __future__ import annotations
+
+import os
+import threading
+
+import numpy as np
+
+from .errors import InputError, UserError, error_message
+
+MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
+MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
+MODEL_FILES = {"mapping": "mapping.onnx", "leader": "tracker_leader.onnx", "follower": "tracker_follower.onnx"}
+
+
+class ModelError(UserError):
+    """The networks cannot be loaded (one user-facing line)."""
+
+
+class OnnxNet:
+    """One ONNX network on onnxruntime's CPU provider, batch 1."""
+
+    def __init__(self, path: str, threads: int = 1):
+        import onnxruntime as ort  # imported lazily: the core stays importable without it
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = max(1, int(threads))
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        self.path = path
+        self.session = ort.InferenceSession(path, sess_options=opts, providers=["CPUExecutionProvider"])
+        self.meta = dict(self.session.get_modelmeta().custom_metadata_map)
+        self.input = self.session.get_inputs()[0].name
+        self.output = self.session.get_outputs()[0].name
+        # batch 1 (the frame loop): preallocated, bound input and output buffers
+        # (io binding skips the per-call feed/fetch conversions, ~10 µs a run)
+        n_in, n_out = self.session.get_inputs()[0].shape[1], self.session.get_outputs()[0].shape[1]
+        self._one = None
+        if isinstance(n_in, int) and isinstance(n_out, int):
+            self._x1 = np.zeros((1, n_in), dtype=np.float32)
+            self._y1 = np.zeros((1, n_out), dtype=np.float32)
+            self._one = self.session.io_binding()
+            self._one.bind_ortvalue_input(self.input, ort.OrtValue.ortvalue_from_numpy(self._x1))
+            self._one.bind_ortvalue_output(self.output, ort.OrtValue.ortvalue_from_numpy(self._y1))
+            self._run_options = ort.RunOptions()
+            self._lock = threading.Lock()
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        # the bound buffers serve one caller at a time (the add-on may run two
+        # syntheses on threads with the same nets): the other takes session.run
+        if self._one is not None and x.shape == self._x1.shape and self._lock.acquire(blocking=False):
+            try:
+                self._x1[...] = x
+                self.session.run_with_iobinding(self._one, self._run_options)
+                return self._y1.copy()
+            finally:
+                self._lock.release()
+        return self.session.run([self.output], {self.input: np.ascontiguousarray(x, dtype=np.float32)})[0]
+
+
+def resolve_model_dir(explicit=None) -> str:
+    """The models folder: ``explicit`` > ``$DP_MODEL_DIR`` > the bundled ``models/``;
+    an :class:`InputError` naming it when a network file is missing."""
+    d = explicit or os.environ.get(MODEL_ENV, "") or MODEL_DIR
+    d = os.path.abspath(os.path.expanduser(d))
+    missing = [f for f in MODEL_FILES.values() if not os.path.isfile(os.path.join(d, f))]
+    if missing:
+        raise InputError(d, f"no synthesis models here (missing {', '.join(missing)})")
+    return d
+
+
+_CACHE: dict = {}
+_CACHE_LOCK = threading.Lock()
+
+
+def load_nets(model_dir=None, threads: int = 1) -> dict:
+    """``{"mapping", "leader", "follower": OnnxNet}`` of a models folder (see
+    :func:`resolve_model_dir`), loaded once per process and thread count (and
+    again when a file changes). :class:`ModelError` when they cannot be loaded."""
+    d = resolve_model_dir(model_dir)
+    paths = {k: os.path.join(d, f) for k, f in MODEL_FILES.items()}
+    key = (d, max(1, int(threads)), tuple(os.path.getmtime(p) for p in paths.values()))
+    with _CACHE_LOCK:
+        nets = _CACHE.get(key)
+        if nets is None:
+            try:
+                nets = {k: OnnxNet(p, key[1]) for k, p in paths.items()}
+            except ImportError:
+                raise ModelError("onnxruntime is not installed in this Python") from None
+            except Exception as exc:  # noqa: BLE001 - a corrupt or foreign file: one line
+                raise ModelError("cannot load the models in {:s}: {:s}".format(d, error_message(exc))) from None
+            _CACHE.clear()  # one set of sessions at a time
+            _CACHE[key] = nets
+        return nets

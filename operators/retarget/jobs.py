@@ -1,0 +1,176 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Retargeting the dancers of a baked duet: one dancer (:func:`retarget_one`,
+its hands closed onto the partner's rig when that one was already retargeted),
+both at once (:func:`retarget_pair`, hands closed symmetrically) and a whole
+duet collection (:func:`retarget_duet_onto`, the batch command's way)."""
+
+import bpy
+import numpy as np
+
+from ...dancing_points_addon import retarget as rt
+from ...dancing_points_addon.errors import UserError, error_message
+from .. import bake
+from ..props import is_duet
+from .keying import key_rig, keyed_world
+from .mapping import mapping_for, stored_mapping
+from .props import ROLE_PROP, ROLES, SOURCE_PROP, TARGET_PROP
+from .rig import RetargetFailure, source_motion, target_rig
+
+
+class _Job:
+    """One dancer: its DP armature, the target rig and the solved pose."""
+
+    def __init__(self, source, target, preset="", foot_lock=True, origin=None):
+        if source is None or source.type != 'ARMATURE':
+            raise RetargetFailure("the source must be a Dancing Points armature")
+        if target is None or target.type != 'ARMATURE':
+            raise RetargetFailure("the target must be an armature")
+        if source == target:
+            raise RetargetFailure("source and target are the same armature")
+        self.source, self.target = source, target
+        bpy.context.view_layer.update()  # up-to-date matrix_world of objects moved since the last evaluation
+        self.frames, self.pos, self.rot, bv, self.src_matrix = source_motion(source)
+        try:
+            mapping = mapping_for(target, preset)
+            self.ret = rt.Retargeter(bv, target_rig(target), mapping, foot_lock=foot_lock)
+        except rt.RetargetError as exc:
+            raise RetargetFailure("{:s}: {:s}".format(target.name, str(exc))) from None
+        if origin is None:
+            origin = _duet_origin(source)
+        self.pose = self.ret.solve(self.pos, self.rot, self.src_matrix, fps=_fps(), origin=origin)
+
+    def src_wrists(self):
+        return rt.source_wrists(rt.source_world(self.pos, self.rot, self.src_matrix)[0])
+
+    def key(self):
+        basis = self.ret.basis(self.pose.W)
+        name = "DP {:s} {:s}".format(self.target.name, self.source.name)
+        action = key_rig(self.target, basis, self.frames, name)
+        self.target[SOURCE_PROP] = self.source.name
+        self.source[TARGET_PROP] = self.target.name
+        action[SOURCE_PROP] = self.source.name
+        return action
+
+
+def _duet_origin(*sources):
+    """Centre of the duet of ``sources`` (DP armatures; the partner of a single one
+    is found in its duet collection) about which root motion is scaled."""
+    if len(sources) == 1:
+        partner = _partner_of(sources[0])
+        sources = sources + ((partner,) if partner is not None else ())
+    pts = []
+    for src in sources:
+        try:
+            _, pos, rot, _, mat = source_motion(src)
+        except RetargetFailure:
+            continue
+        pts.append(rt.source_world(pos, rot, mat)[0])
+    return rt.duet_origin(*pts) if pts else None
+
+
+def _fps():
+    scene = bpy.context.scene
+    return scene.render.fps / scene.render.fps_base if scene is not None else 30.0
+
+
+def _dancers(coll, kind='ARMATURE'):
+    """The objects of ``coll`` of type ``kind`` that are a dancer (leader or follower)."""
+    return [o for o in coll.objects if o.type == kind and o.get(ROLE_PROP) in ROLES]
+
+
+def _partner_of(source):
+    """The other DP armature of ``source``'s duet collection, or None."""
+    role = source.get(ROLE_PROP)
+    for coll in source.users_collection:
+        if is_duet(coll):
+            for o in _dancers(coll):
+                if o != source and o.get(ROLE_PROP) != role:
+                    return o
+    return None
+
+
+def retarget_one(context, source, target, preset="", foot_lock=True, close_hands=True):
+    """Retarget ``source`` (a DP armature) onto ``target``; the hands close onto the
+    partner's rig when the partner dancer was already retargeted. Returns a dict of figures."""
+    bake.ensure_object_mode(context)
+    job = _Job(source, target, preset, foot_lock)
+    info = {"scale": job.ret.scale, "frames": len(job.frames)}
+    partner = _partner_of(source) if close_hands else None
+    prig = bpy.data.objects.get(partner.get(TARGET_PROP, "")) if partner is not None else None
+    if prig is not None and prig.type == 'ARMATURE' and prig != target \
+            and prig.get(SOURCE_PROP) == partner.name and stored_mapping(prig):
+        try:
+            pframes, ppos, prot, pbv, pmat = source_motion(partner)
+            if len(pframes) == len(job.frames) and np.allclose(pframes, job.frames):
+                pret = rt.Retargeter(pbv, target_rig(prig, store=False), stored_mapping(prig), foot_lock=False)
+                pw = pret.wrists(keyed_world(prig, pret, job.frames))
+                src_b = rt.source_wrists(rt.source_world(ppos, prot, pmat)[0])
+                before, after = rt.close_hands(job.ret, job.pose, job.src_wrists(), src_b, wrists_b=pw)
+                info["hand_gap_before"], info["hand_gap_after"] = before, after
+        except UserError as exc:
+            info["warning"] = "hands not closed: {:s}".format(error_message(exc))
+    info["action"] = job.key()
+    info["pose"] = job.pose
+    info["retargeter"] = job.ret
+    return info
+
+
+def retarget_pair(context, pairs, preset=("", ""), foot_lock=True, close_hands=True):
+    """Retarget ``pairs`` = ((leader DP armature, rig), (follower DP armature, rig))
+    jointly (hands closed symmetrically). Returns ``{role: info}``."""
+    bake.ensure_object_mode(context)
+    origin = _duet_origin(*[s for s, _ in pairs]) if len(pairs) == 2 else None
+    jobs = [_Job(s, t, p, foot_lock, origin) for (s, t), p in zip(pairs, preset)]
+    out = {}
+    if close_hands and len(jobs) == 2 and len(jobs[0].frames) == len(jobs[1].frames):
+        a, b = jobs
+        before, after = rt.close_hands(a.ret, a.pose, a.src_wrists(), b.src_wrists(), b.ret, b.pose)
+        out["hand_gap_before"], out["hand_gap_after"] = before, after
+    for job, role in zip(jobs, ROLES):
+        out[role] = {"action": job.key(), "scale": job.ret.scale, "pose": job.pose, "retargeter": job.ret,
+                     "frames": job.frames}
+    return out
+
+
+def duet_armatures(duet_collection):
+    """``{role: DP armature}`` of a duet collection."""
+    out = {}
+    for o in _dancers(duet_collection):
+        out.setdefault(o[ROLE_PROP], o)
+    return out
+
+
+def retarget_duet_onto(leader_rig_obj, follower_rig_obj, duet_collection, context=None, foot_lock=True,
+                       close_hands=True, hide_bodies=True):
+    """Retarget the duet in ``duet_collection`` (made by ``dancing_points.synthesize``)
+    onto two armature objects (either may be None to skip that dancer). With
+    ``hide_bodies`` the duet's default bodies are hidden in renders and the
+    viewport. Returns ``{role: {"action", "scale", ...}}``; raises
+    :class:`RetargetFailure` with a one-line message."""
+    context = context or bpy.context
+    if duet_collection is None or not is_duet(duet_collection):
+        raise RetargetFailure("not a Dancing Points duet collection")
+    arms = duet_armatures(duet_collection)
+    pairs = [(arms.get(role), rig) for role, rig in zip(ROLES, (leader_rig_obj, follower_rig_obj))
+             if rig is not None]
+    if not pairs:
+        raise RetargetFailure("no rig to retarget onto")
+    for src, rig in pairs:
+        if src is None:
+            raise RetargetFailure("the duet has no armature for a dancer")
+    if len(pairs) == 2:
+        out = retarget_pair(context, pairs, foot_lock=foot_lock, close_hands=close_hands)
+    else:
+        src, rig = pairs[0]
+        out = {src[ROLE_PROP]: retarget_one(context, src, rig, foot_lock=foot_lock, close_hands=close_hands)}
+    if hide_bodies:
+        hide_duet_bodies(duet_collection)
+    return out
+
+
+def hide_duet_bodies(duet_collection, hide=True):
+    """Hide (or show) the duet's default bodies in the viewport and renders (the
+    armatures stay: they drive the retargeted rigs' source data)."""
+    for o in _dancers(duet_collection, 'MESH'):
+        o.hide_render = hide
+        o.hide_viewport = hide

@@ -1,0 +1,196 @@
+"""Helpers shared by several test modules (tests never import one another)."""
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+
+from conftest import ROOT, SALSA
+from dancing_points_addon.formats.take import COLUMNS, Take
+from dancing_points_addon.rotations import matrix_to_quat, quat_to_matrix
+
+IDENT = [1.0, 0.0, 0.0, 0.0]
+
+
+def quat_angle_deg(a, b):
+    """Rotation angle (degrees) between unit quaternions ``(…, 4)``, accurate near 0."""
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    b = b * np.where(np.sum(a * b, -1, keepdims=True) < 0, -1.0, 1.0)
+    return np.degrees(4 * np.arcsin(np.clip(np.linalg.norm(a - b, axis=-1) / 2, 0, 1)))
+
+
+# --------------------------------------------------------------------------- take files
+
+def row(t, head=(0.1, 1.6, 0.2), lhand=(-0.3, 1.1, 0.1), rhand=(0.3, 1.1, 0.1),
+        hq=(0, 0, 1, 0), lq=IDENT, rq=IDENT):
+    vals = [t, *head, *hq, *lhand, *lq, *rhand, *rq]
+    return ",".join(str(v) for v in vals)
+
+
+def good_lines(n=5):
+    return [row(i / 90.0) for i in range(n)]
+
+
+def write_lines(path, lines, header=",".join(COLUMNS), comments=("# height_m=1.78", "# a comment")):
+    path.write_text("\n".join(list(comments) + ([header] if header is not None else []) + list(lines)) + "\n")
+    return path
+
+
+HEADER_LINE = 3  # two comment lines, then the header
+ROW1 = 4         # first data row
+
+
+def _replace_field(line, col, value):
+    f = line.split(",")
+    f[COLUMNS.index(col)] = value
+    return ",".join(f)
+
+
+def _case(kind):
+    """(header, data lines, expected line, message fragment) for a rejection."""
+    h = ",".join(COLUMNS)
+    L = good_lines(6)
+    if kind == "missing column":
+        return h.replace(",rhand_qz", ""), [ln.rsplit(",", 1)[0] for ln in L], HEADER_LINE, "missing header column rhand_qz"
+    if kind == "unknown column":
+        return h + ",extra", [ln + ",0" for ln in L], HEADER_LINE, "unknown header column 'extra'"
+    if kind == "duplicate column":
+        return h.replace("head_qw", "head_qx"), L, HEADER_LINE, "twice"
+    if kind == "no header":
+        return None, L, 3, "missing header line"
+    if kind == "too few fields":
+        L[2] = L[2].rsplit(",", 1)[0]
+        return h, L, ROW1 + 2, "21 fields"
+    if kind == "too many fields":
+        L[3] = L[3] + ",1"
+        return h, L, ROW1 + 3, "23 fields"
+    if kind == "non-numeric":
+        L[4] = _replace_field(L[4], "lhand_pz", "abc")
+        return h, L, ROW1 + 4, "non-numeric value 'abc' in column lhand_pz"
+    if kind == "non-numeric hex":
+        L[1] = _replace_field(L[1], "head_px", "0x10")
+        return h, L, ROW1 + 1, "non-numeric"
+    if kind == "non-numeric space":
+        L[1] = _replace_field(L[1], "rhand_py", "1 2")
+        return h, L, ROW1 + 1, "non-numeric"
+    if kind == "infinity":
+        L[2] = _replace_field(L[2], "rhand_qx", "inf")
+        return h, L, ROW1 + 2, "infinite value in column rhand_qx"
+    if kind == "overflow":
+        L[5] = _replace_field(L[5], "time", "1e400")
+        return h, L, ROW1 + 5, "infinite value in column time"
+    if kind == "far position":
+        L[3] = _replace_field(L[3], "lhand_py", "1000.5")
+        return h, L, ROW1 + 3, "lhand position is 1000.5"
+    if kind == "small quaternion":
+        L[1] = row(1 / 90, rq=(0.3, 0, 0, 0.3))
+        return h, L, ROW1 + 1, "rhand quaternion norm 0.424264"
+    if kind == "large quaternion":
+        L[2] = row(2 / 90, hq=(0, 0, 2.1, 0))
+        return h, L, ROW1 + 2, "head quaternion norm 2.1"
+    if kind == "equal time":
+        L[3] = row(2 / 90)
+        return h, L, ROW1 + 3, "not after"
+    if kind == "decreasing time":
+        L[4] = row(0.0)
+        return h, L, ROW1 + 4, "not after"
+    if kind == "missing time":
+        L[2] = _replace_field(L[2], "time", "")
+        return h, L, ROW1 + 2, "missing time value"
+    if kind == "one row":
+        return h, L[:1], ROW1, "at least 2"
+    if kind == "no rows":
+        return h, [], HEADER_LINE, "at least 2"
+    if kind == "earliest wins":
+        L[5] = row(5 / 90, hq=(0, 0, 9, 0))
+        L[2] = _replace_field(L[2], "head_pz", "-inf")
+        return h, L, ROW1 + 2, "infinite"
+    raise AssertionError(kind)
+
+
+REJECTIONS = ["missing column", "unknown column", "duplicate column", "no header", "too few fields",
+              "too many fields", "non-numeric", "non-numeric hex", "non-numeric space", "infinity",
+              "overflow", "far position", "small quaternion", "large quaternion", "equal time",
+              "decreasing time", "missing time", "one row", "no rows", "earliest wins"]
+
+
+def write_case(path, kind):
+    header, lines, line, frag = _case(kind)
+    write_lines(path, lines, header=header)
+    return line, frag
+
+
+def axis_quat(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    half = np.asarray(angle)[..., None] / 2.0
+    return np.concatenate([np.cos(half), np.sin(half) * axis], axis=-1)
+
+
+def irregular_take(n=400, seed=1):
+    """A 90 Hz take with jittered times, linear positions and constant-rate turns."""
+    rng = np.random.default_rng(seed)
+    t = 0.25 + np.arange(n) / 90.0 + rng.uniform(-0.003, 0.003, n)
+    A = rng.uniform(-1, 1, (3, 3))
+    B = rng.uniform(-2, 2, (3, 3))
+    pos = A[None] + B[None] * t[:, None, None]
+    axes = [(0, 1, 0), (1, 2, 0.5), (-0.3, 0.2, 1)]
+    rates = [2.0, -5.0, 9.0]  # rad/s; several full turns over the take
+    q = np.stack([axis_quat(ax, w * t) for ax, w in zip(axes, rates)], axis=1)
+    q = matrix_to_quat(quat_to_matrix(q))  # canonical w >= 0: sign flips between rows
+    return Take(t, pos, q, {"height_m": 1.8}, "irregular"), (A, B, axes, rates)
+
+
+# --------------------------------------------------------------------------- the command line
+
+def run_cli(*args, timeout=120):
+    return subprocess.run([sys.executable, "-m", "dancing_points_addon", *map(str, args)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+
+
+def assert_bad_input(res, out_path, *fragments, old=None):
+    """Exit 2, exactly one stderr line, no traceback, output absent or untouched."""
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    lines = res.stderr.splitlines()
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith("error: "), res.stderr
+    assert "Traceback" not in res.stderr + res.stdout
+    for frag in fragments:
+        assert frag in lines[0], (frag, lines[0])
+    if old is None:
+        assert not out_path.exists()
+    else:
+        assert out_path.read_bytes() == old
+    # No temporary files left beside the output either.
+    if out_path.parent.is_dir():
+        leftovers = [p.name for p in out_path.parent.iterdir() if p.name.startswith("." + out_path.name)]
+        assert not leftovers, leftovers
+    return lines[0]
+
+
+def broken_amc(tmp_path, edit):
+    d = tmp_path / "amc"
+    d.mkdir()
+    shutil.copy(SALSA / "60.asf", d / "60.asf")
+    lines = (SALSA / "60_01.amc").read_text().splitlines()
+    lineno = edit(lines)
+    (d / "60_01.amc").write_text("\n".join(lines) + "\n")
+    return d / "60_01.amc", lineno
+
+
+def bad_number(lines):
+    i = next(k for k, ln in enumerate(lines) if ln.startswith("lfemur ") and k > 500)
+    lines[i] = "lfemur 1.0 x2.5 3.0"
+    return i + 1
+
+
+def short_bone(lines):
+    i = next(k for k, ln in enumerate(lines) if ln.startswith("rtibia ") and k > 300)
+    lines[i] = "rtibia"
+    return i + 1
+
+
+def unknown_bone(lines):
+    i = next(k for k, ln in enumerate(lines) if ln.startswith("head ") and k > 100)
+    lines[i] = "nose 1 2 3"
+    return i + 1
