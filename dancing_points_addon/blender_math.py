@@ -56,25 +56,25 @@ def rot_to_motion(rot: np.ndarray, conv: np.ndarray = C) -> np.ndarray:
     return conv.T @ np.asarray(rot, dtype=np.float64) @ conv
 
 
-def quat_to_blender(q: np.ndarray, conv: np.ndarray = C) -> np.ndarray:
-    """Quaternions ``(…, 4)`` (w, x, y, z) of motion-space rotations, as Blender rotations.
-
-    NaN quaternions (lost tracking) stay NaN."""
+def _convert_quats(q: np.ndarray, convert, conv: np.ndarray) -> np.ndarray:
+    """Quaternions ``(…, 4)`` through a rotation-matrix change of basis; NaN
+    quaternions (lost tracking) stay NaN."""
     q = np.asarray(q, dtype=np.float64)
     ok = np.isfinite(q).all(-1)
     out = np.full(q.shape, np.nan)
     if ok.any():
-        out[ok] = matrix_to_quat(rot_to_blender(quat_to_matrix(q[ok]), conv))
+        out[ok] = matrix_to_quat(convert(quat_to_matrix(q[ok]), conv))
     return out
+
+
+def quat_to_blender(q: np.ndarray, conv: np.ndarray = C) -> np.ndarray:
+    """Quaternions (w, x, y, z) of motion-space rotations as Blender rotations."""
+    return _convert_quats(q, rot_to_blender, conv)
 
 
 def quat_to_motion(q: np.ndarray, conv: np.ndarray = C) -> np.ndarray:
-    q = np.asarray(q, dtype=np.float64)
-    ok = np.isfinite(q).all(-1)
-    out = np.full(q.shape, np.nan)
-    if ok.any():
-        out[ok] = matrix_to_quat(rot_to_motion(quat_to_matrix(q[ok]), conv))
-    return out
+    """Quaternions (w, x, y, z) of Blender rotations as motion-space rotations."""
+    return _convert_quats(q, rot_to_motion, conv)
 
 
 def continuous_quats(q: np.ndarray, axis: int = 0) -> np.ndarray:

@@ -101,7 +101,7 @@ def cmd_synthesize(args) -> int:
         written = [out]
     else:
         from .formats.bvh import bvh_text
-        from .formats.take import atomic_output
+        from .formats.files import atomic_output
 
         written = []
         try:

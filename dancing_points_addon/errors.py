@@ -31,12 +31,20 @@ def one_line(text) -> str:
     return " ".join(str(text).split())
 
 
+def is_user_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a :class:`UserError`, also of another copy of this
+    module (a ``bpy`` batch worker runs the core both as ``dancing_points_addon``
+    and as the enabled extension's package)."""
+    return any(c.__name__ == "UserError" and c.__module__.endswith("dancing_points_addon.errors")
+               for c in type(exc).__mro__)
+
+
 def error_message(exc: BaseException, failed: str = "") -> str:
     """The one line to show for ``exc``: a :class:`UserError`'s message as it is;
     for anything else its type and the first line of its message, after
     ``failed`` (e.g. ``"retarget failed"``) when given."""
     text = str(exc).strip()
-    if isinstance(exc, UserError):
+    if is_user_error(exc):
         return one_line(text) or type(exc).__name__
     first = text.splitlines()[0].strip() if text else ""
     detail = f"{type(exc).__name__}: {first}" if first else type(exc).__name__

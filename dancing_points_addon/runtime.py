@@ -497,7 +497,7 @@ class Synthesizer:
 
 def save_npz(duet: Duet, path) -> None:
     """Write a duet (SPEC §4) atomically: nothing is left at ``path`` on failure."""
-    from .formats.take import atomic_output
+    from .formats.files import atomic_output
 
     with atomic_output(path, "wb") as f:
         np.savez_compressed(f, **duet.arrays())

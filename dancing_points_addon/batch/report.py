@@ -36,7 +36,7 @@ def summary_line(report, outcome, seconds, report_path) -> str:
 
 
 def write_report(path, data) -> None:
-    from ..formats.take import atomic_output
+    from ..formats.files import atomic_output
 
     with atomic_output(path, "w", encoding="utf-8", newline="\n") as f:
         json.dump(data, f, indent=1)

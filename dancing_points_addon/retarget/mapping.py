@@ -20,7 +20,7 @@ import os
 
 from ..errors import UserError
 from ..formats.naming import normalise_name
-from ..formats.take import atomic_output
+from ..formats.files import atomic_output
 from ..skeleton import JOINT_INDEX, JOINT_NAMES, PARENTS
 
 PRESET_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "presets")

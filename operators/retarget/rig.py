@@ -105,7 +105,7 @@ def source_motion(arm_obj):
 
 def _import_error(path, exc):
     """The importer's error as one line naming the file."""
-    return RetargetFailure("{:s}: {:s}".format(path, str(exc).strip().splitlines()[-1]))
+    return RetargetFailure("{:s}: {:s}".format(path, compat.operator_error_text(exc)))
 
 
 def load_rig_file(path, context=None):
