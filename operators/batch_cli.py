@@ -33,6 +33,7 @@ from ..dancing_points_addon.argtypes import Parser, UsageError
 from ..dancing_points_addon.batch.options import synthesis_options
 from ..dancing_points_addon.batch.worker import worker_main, write_duet_files
 from ..dancing_points_addon.errors import InputError, UserError, error_message
+from . import compat
 from .batch_worker import enable_extension_in_bpy
 
 COMMAND_ID = "dancing_points"
@@ -96,11 +97,7 @@ def cli(argv):
 
 def _op_error(exc, path=None):
     """The one-line message of an operator's error report (``RuntimeError: Error: ...``)."""
-    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-    msg = lines[0] if lines else type(exc).__name__
-    for prefix in ("Error: ", "error: "):
-        if msg.startswith(prefix):
-            msg = msg[len(prefix):]
+    msg = compat.operator_error_text(exc)
     if path and path not in msg:
         msg = "{:s}: {:s}".format(path, msg)
     return BatchError(msg)
