@@ -11,7 +11,7 @@ import threading
 
 import numpy as np
 
-from .errors import InputError, UserError, error_message
+from .errors import InputError, UserError
 
 MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
@@ -75,6 +75,17 @@ def resolve_model_dir(explicit=None) -> str:
     return d
 
 
+def _load_one(path: str, threads: int) -> OnnxNet:
+    try:
+        return OnnxNet(path, threads)
+    except ImportError:
+        raise ModelError("onnxruntime is not installed in this Python") from None
+    except Exception:  # noqa: BLE001 - a damaged or foreign file: one line naming it
+        size = os.path.getsize(path)
+        what = "an empty file" if size == 0 else "damaged or not an ONNX model"
+        raise ModelError(f"{path}: ONNX Runtime cannot load this network ({what})") from None
+
+
 _CACHE: dict = {}
 _CACHE_LOCK = threading.Lock()
 
@@ -89,12 +100,42 @@ def load_nets(model_dir=None, threads: int = 1) -> dict:
     with _CACHE_LOCK:
         nets = _CACHE.get(key)
         if nets is None:
-            try:
-                nets = {k: OnnxNet(p, key[1]) for k, p in paths.items()}
-            except ImportError:
-                raise ModelError("onnxruntime is not installed in this Python") from None
-            except Exception as exc:  # noqa: BLE001 - a corrupt or foreign file: one line
-                raise ModelError("cannot load the models in {:s}: {:s}".format(d, error_message(exc))) from None
+            nets = {k: _load_one(p, key[1]) for k, p in paths.items()}
             _CACHE.clear()  # one set of sessions at a time
             _CACHE[key] = nets
         return nets
+
+
+def check_models(model_dir=None, threads: int = 1) -> str:
+    """Check a models folder once, before any work (the command line and the batch
+    call it at start-up): the three files exist, load in ONNX Runtime, take and
+    give the sizes of this version's feature layout (``features.layout``) and
+    carry the metadata the runtime needs. Returns the folder; a
+    :class:`UserError` (one line, naming the folder or file) otherwise."""
+    import json
+
+    from . import features as F
+
+    nets = load_nets(model_dir, threads)
+    d = resolve_model_dir(model_dir)
+    want = F.layout()
+    sizes = {"mapping": (want["map_in"], None), "leader": (want["track_in"], None),
+             "follower": (want["track_in"], None)}
+    for kind, net in nets.items():
+        path = os.path.join(d, MODEL_FILES[kind])
+        try:
+            layout = json.loads(net.meta.get("layout", "null"))
+        except ValueError:
+            layout = None
+        if not isinstance(layout, dict):
+            raise ModelError(f"{path}: not a Dancing Points model (no feature layout in its metadata)")
+        for key in ("fps", "past", "future", "track_keys", "map_in", "map_out", "track_in", "key_out", "pose_dim"):
+            if layout.get(key) != want[key]:
+                raise ModelError(f"{path}: made for another feature layout ({key} {layout.get(key)!r}, "
+                                 f"this version needs {want[key]!r})")
+        n_in = net.session.get_inputs()[0].shape[-1]
+        if isinstance(n_in, int) and n_in != sizes[kind][0]:
+            raise ModelError(f"{path}: takes {n_in} inputs, the {kind} network needs {sizes[kind][0]}")
+        if kind != "mapping" and "default_pose" not in net.meta:
+            raise ModelError(f"{path}: no default_pose in its metadata")
+    return d

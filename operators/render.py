@@ -6,6 +6,7 @@ scene's render settings are restored afterwards."""
 import os
 
 import bpy
+import numpy as np
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
 from .compat import operator_error_text
@@ -32,6 +33,47 @@ class _Saved:
                 setattr(obj, attr, value)
             except (AttributeError, TypeError, ValueError):
                 pass
+
+
+def _output_files(render, f0, f1, file_format):
+    """The files a render of frames ``f0..f1`` writes: one PNG per frame, or the video."""
+    if file_format == 'FFMPEG':
+        return [bpy.path.abspath(render.frame_path(frame=f0))]
+    return [bpy.path.abspath(render.frame_path(frame=f)) for f in range(f0, f1 + 1)]
+
+
+def _is_blank_png(path):
+    """Whether a written PNG shows nothing: every pixel the same colour, up to
+    the render's dithering noise (a few 8-bit steps)."""
+    img = bpy.data.images.load(path, check_existing=False)
+    try:
+        px = np.empty(len(img.pixels), dtype=np.float32)
+        img.pixels.foreach_get(px)
+        px = px.reshape(-1, max(int(img.channels), 1))
+    finally:
+        bpy.data.images.remove(img)
+    return len(px) == 0 or float(np.ptp(px, axis=0).max()) < 0.05
+
+
+def _check_written(files, file_format):
+    """None when every output file was written and the render shows something;
+    else the problem, after removing the empty files this render left (a full
+    disk leaves zero-byte images)."""
+    missing = [f for f in files if not os.path.isfile(f)]
+    empty = [f for f in files if os.path.isfile(f) and os.path.getsize(f) == 0]
+    for f in empty:
+        try:
+            os.remove(f)
+        except OSError:
+            pass
+    if missing or empty:
+        what = "the video" if file_format == 'FFMPEG' else "{:d} of {:d} frames".format(
+            len(missing) + len(empty), len(files))
+        return "{:s} not written (disk full or folder not writable?): {:s}".format(
+            what, (missing + empty)[0])
+    if file_format == 'PNG' and _is_blank_png(files[len(files) // 2]):
+        return "the rendered frames are blank ({:s}): nothing in front of the camera?".format(files[len(files) // 2])
+    return None
 
 
 class DANCING_POINTS_OT_render_preview(bpy.types.Operator):
@@ -102,13 +144,17 @@ class DANCING_POINTS_OT_render_preview(bpy.types.Operator):
                 bpy.ops.render.render(animation=True, scene=scene.name)
             finally:
                 scene.frame_set(frame)
-            out = bpy.path.abspath(r.frame_path(frame=f0))
+            files = _output_files(r, f0, f1, self.file_format)
+            problem = _check_written(files, self.file_format)
         except Exception as exc:
             self.report({'ERROR'}, "render failed: {:s}".format(operator_error_text(exc)))
             return {'CANCELLED'}
         finally:
             saved.restore()
-        self.report({'INFO'}, "Rendered frames {:d}-{:d} to {:s}".format(f0, f1, out))
+        if problem:
+            self.report({'ERROR'}, "render failed: {:s}".format(problem))
+            return {'CANCELLED'}
+        self.report({'INFO'}, "Rendered frames {:d}-{:d} to {:s}".format(f0, f1, files[0]))
         return {'FINISHED'}
 
 

@@ -12,6 +12,7 @@ Models: the shipped ``models/`` (``$DP_MODEL_DIR`` overrides).
 from __future__ import annotations
 
 import os
+import subprocess
 import time
 
 import numpy as np
@@ -470,6 +471,44 @@ def test_render_preview_shows_both_bodies(baked, tmp_path):
     print(f"\nrender {px.shape[1]}x{px.shape[0]} in {t_render:.2f} s: {fg.sum()} body pixels, "
           f"{blue.sum()} leader-blue, {red.sum()} follower-red")
     assert blue.sum() > 50 and red.sum() > 50
+
+
+def _small_disk(path):
+    """A 64 KiB tmpfs at ``path`` (a full disk for a render), or None where mounting
+    is not allowed."""
+    path.mkdir()
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(path)], capture_output=True)
+    return path if res.returncode == 0 else None
+
+
+def test_render_preview_reports_a_full_disk(baked, tmp_path):
+    """A render that cannot write its frames (a full disk; where mounting is not
+    allowed, frame paths that are folders) fails with one line and leaves no
+    zero-byte images; a blank render is not a success either."""
+    scene = baked["scene"]
+    mid = baked["frame_start"] + baked["duet"].n_frames // 2
+    disk = _small_disk(tmp_path / "disk")
+    try:
+        if disk is None:  # no tmpfs here: make the frames unwritable instead
+            disk = tmp_path / "disk"
+            for f in range(mid, mid + 3):
+                (disk / f"prev_{f:04d}.png").mkdir()
+        with pytest.raises(RuntimeError, match="not written"):
+            bpy.ops.dancing_points.render_preview(filepath=str(disk / "prev_"), file_format='PNG', frame_start=mid,
+                                                  frame_end=mid + 2, resolution_percentage=100)
+        assert not [f for f in disk.iterdir() if f.is_file() and f.stat().st_size == 0]
+    finally:
+        subprocess.run(["umount", str(tmp_path / "disk")], capture_output=True)
+    # nothing in front of the camera: a blank frame is reported, not written off as done
+    cam = scene.camera
+    saved = cam.location.copy()
+    cam.location = (1e4, 1e4, 1e4)
+    try:
+        with pytest.raises(RuntimeError, match="blank"):
+            bpy.ops.dancing_points.render_preview(filepath=str(tmp_path / "blank_"), file_format='PNG',
+                                                  frame_start=mid, frame_end=mid, resolution_percentage=10)
+    finally:
+        cam.location = saved
 
 
 def test_rebake_makes_a_new_version(baked):
