@@ -6,8 +6,10 @@ Layers (each may import the ones above it, never the ones below):
    networks, the frame-by-frame synthesis, IK, skinning, retargeting maths and
    the batch scheduler, in numpy and onnxruntime. It never imports ``bpy``
    (``tests/test_layers.py`` imports every module with ``bpy`` made
-   unimportable) and never names a Blender-side module. It is also the command
-   line: ``python -m dancing_points_addon``.
+   unimportable) and never imports a Blender-side module; the one link the
+   other way is a path: the batch starts ``operators/batch_worker.py`` as a
+   worker program when a take needs Blender. It is also the command line:
+   ``python -m dancing_points_addon``.
 2. **Blender side** — ``operators/``, ``panels/``, ``preferences.py`` at the
    extension's root: thin translation between Blender data and the core.
 3. **training and tools** — ``training/`` (PyTorch; datasets, metrics,

@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from .nets import MODEL_FILES, OnnxNet, resolve_model_dir
+from .nets import MODEL_FILES, load_nets, resolve_model_dir
 from .runtime import SynthesisOptions, Synthesizer
 
 SAMPLE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "samples", "sample_take.csv")
@@ -117,8 +117,7 @@ def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True
 
     model_dir = resolve_model_dir(model_dir)
     clocks = {"networks": [0.0], "recovery": [0.0]}
-    nets = {k: _Timed(OnnxNet(os.path.join(model_dir, f), threads), clocks["networks"])
-            for k, f in MODEL_FILES.items()}
+    nets = {k: _Timed(net, clocks["networks"]) for k, net in load_nets(model_dir, threads).items()}
     synth = _TimedSynth(SynthesisOptions(foot_lock=foot_lock, hand_ik=hand_ik), nets=nets, clocks=clocks)
     take = resample_take(read_take(take_path))
     valid = take.valid

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from .rotations import matrix_to_quat, quat_to_matrix
-from .skeleton import JOINT_NAMES, PARENTS, rest_joints
+from .skeleton import JOINT_NAMES, PARENTS, rest_joints, rest_starts
 
 # Motion space (Y up) -> Blender (Z up): (x, y, z) -> (x, -z, y).
 C = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -105,10 +105,6 @@ def fill_gaps(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- rig reading
 
-def _unscaled(m):
-    return m / np.linalg.norm(m, axis=-2, keepdims=True)
-
-
 def unit_scale_for_height(height: float, candidates=None, typical: float = 1.7) -> float:
     """Factor to metres for a rig whose rest height is ``height`` in its own units:
     the candidate unit that makes it closest (in log) to a ``typical`` person."""
@@ -124,8 +120,7 @@ def unit_scale_for_height(height: float, candidates=None, typical: float = 1.7) 
 def armature_rest(bone_vectors: np.ndarray, root_length: float = ROOT_BONE_LENGTH):
     """Edit-bone heads and tails ``(31, 3)`` each, in Blender space, of the rest pose."""
     ends = to_blender(rest_joints(bone_vectors))
-    heads = ends[_PAR].copy()
-    heads[0] = ends[0]
+    heads = to_blender(rest_starts(bone_vectors))
     tails = ends.copy()
     tails[0] = ends[0] + np.array([0.0, 0.0, root_length])
     return heads, tails

@@ -30,11 +30,17 @@ FUTURE = 30
 N_JOINTS = 31
 TRACK_KEYS = np.array([1, 2, 4, 6, 9, 12, 15, 20, 25, 30])
 
-MAP_IN = PAST * 13
-MAP_OUT = FUTURE * 26
+ROOT_DIM = 4                   # a root: (x, z, cos, sin)
+POINTS_DIM = 9                 # the three tracked points, (3, 3)
+FRAME_DIM = ROOT_DIM + POINTS_DIM  # one dancer at one frame or key: root, then points
+FRAME_ROOT = slice(0, ROOT_DIM)
+FRAME_POINTS = slice(ROOT_DIM, FRAME_DIM)
+
+MAP_IN = PAST * FRAME_DIM
+MAP_OUT = FUTURE * 2 * FRAME_DIM
 POSE_DIM = N_JOINTS * 3 + N_JOINTS * 6 + 4
-TRACK_IN = POSE_DIM + len(TRACK_KEYS) * 13
-KEY_OUT = 4 + N_JOINTS * 3 + N_JOINTS * 6 + 4
+TRACK_IN = POSE_DIM + len(TRACK_KEYS) * FRAME_DIM
+KEY_OUT = ROOT_DIM + N_JOINTS * 3 + N_JOINTS * 6 + 4
 TRACK_OUT = len(TRACK_KEYS) * KEY_OUT
 
 # Named slices of a pose feature vector (POSE_DIM) and of one key of the
@@ -42,7 +48,7 @@ TRACK_OUT = len(TRACK_KEYS) * KEY_OUT
 POSE_POS = slice(0, N_JOINTS * 3)                                   # 0:93 local joint positions
 POSE_ROT = slice(POSE_POS.stop, POSE_POS.stop + N_JOINTS * 6)      # 93:279 6D rotations
 POSE_CON = slice(POSE_ROT.stop, POSE_ROT.stop + 4)                 # 279:283 foot contacts
-KEY_ROOT = slice(0, 4)                                              # root relative to F0
+KEY_ROOT = slice(0, ROOT_DIM)                                       # 0:4 root relative to F0
 KEY_POS = slice(KEY_ROOT.stop, KEY_ROOT.stop + N_JOINTS * 3)        # 4:97
 KEY_ROT = slice(KEY_POS.stop, KEY_POS.stop + N_JOINTS * 6)          # 97:283
 KEY_CON = slice(KEY_ROT.stop, KEY_ROT.stop + 4)                     # 283:287
@@ -70,17 +76,17 @@ def mapping_input(roots: np.ndarray, tracked: np.ndarray) -> np.ndarray:
     """``roots (B, PAST, 4)``, ``tracked (B, PAST, 3, 3)`` world -> ``(B, MAP_IN)``."""
     B = len(roots)
     ref = roots[:, 0]
-    out = np.empty((B * PAST, 13))
-    out[:, :4] = relative_rows(ref.T.repeat(PAST, axis=1), roots.reshape(-1, 4).T).T
+    out = np.empty((B * PAST, FRAME_DIM))
+    out[:, FRAME_ROOT] = relative_rows(ref.T.repeat(PAST, axis=1), roots.reshape(-1, 4).T).T
     # all points of a window in one (N, 3) @ (3, 3) product
     p = to_local(tracked.reshape(-1, 3), ref[0]) if B == 1 else to_local(tracked.reshape(B, -1, 3), ref)
-    out[:, 4:] = p.reshape(-1, 9)
+    out[:, FRAME_POINTS] = p.reshape(-1, POINTS_DIM)
     return out.reshape(B, MAP_IN)
 
 
 def _dancer_future(ref, roots, tracked):
     r = root_relative(ref[:, None], roots)
-    p = to_local(tracked, roots).reshape(roots.shape[:2] + (9,))
+    p = to_local(tracked, roots).reshape(roots.shape[:2] + (POINTS_DIM,))
     return np.concatenate([r, p], axis=-1)
 
 
@@ -95,13 +101,13 @@ def decode_mapping(y: np.ndarray, lead_root_t: np.ndarray):
     """``(B, MAP_OUT)`` -> per dancer (leader, follower): world roots ``(B, FUTURE, 4)``
     and tracked points in their own roots ``(B, FUTURE, 3, 3)``."""
     B = len(y)
-    y = y.reshape(B * FUTURE * 2, 13)  # batch × frame × dancer
-    rel = y[:, :4].T.astype(np.float64, order="C")  # component rows (4, n): see compose_rows
+    y = y.reshape(B * FUTURE * 2, FRAME_DIM)  # batch × frame × dancer
+    rel = y[:, FRAME_ROOT].T.astype(np.float64, order="C")  # component rows (4, n): see compose_rows
     h = rel[2:4]
     h /= np.maximum(np.sqrt(np.einsum("ij,ij->j", h, h)), 1e-9)
     roots = compose_rows(lead_root_t.T.repeat(FUTURE * 2, axis=1), rel)  # both dancers at once
     roots = np.ascontiguousarray(roots.T).reshape(B, FUTURE, 2, 4)
-    tracked = y[:, 4:].astype(np.float64).reshape(B, FUTURE, 2, 3, 3)
+    tracked = y[:, FRAME_POINTS].astype(np.float64).reshape(B, FUTURE, 2, 3, 3)
     return [(roots[:, :, d], tracked[:, :, d]) for d in range(2)]
 
 
@@ -121,9 +127,9 @@ def tracking_input(pose_feat, f0, key_roots, key_tracked_local) -> np.ndarray:
     B, K = len(pose_feat), len(TRACK_KEYS)
     out = np.empty((B, TRACK_IN))
     out[:, :POSE_DIM] = pose_feat
-    fut = out[:, POSE_DIM:].reshape(B, K, 13)
-    fut[..., :4] = relative_rows(f0.T.repeat(K, axis=1), key_roots.reshape(-1, 4).T).T.reshape(B, K, 4)
-    fut[..., 4:] = key_tracked_local.reshape(B, K, 9)
+    fut = out[:, POSE_DIM:].reshape(B, K, FRAME_DIM)
+    fut[..., FRAME_ROOT] = relative_rows(f0.T.repeat(K, axis=1), key_roots.reshape(-1, 4).T).T.reshape(B, K, 4)
+    fut[..., FRAME_POINTS] = key_tracked_local.reshape(B, K, POINTS_DIM)
     return out
 
 

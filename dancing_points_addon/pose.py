@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .representation import _dot3, norm
+from .representation import dot3, norm
 from .skeleton import PARENTS
 
 N = len(PARENTS)
@@ -74,7 +74,7 @@ class PoseRecovery:
         calls); the matrix products stay the same BLAS calls."""
         p = np.ascontiguousarray(positions.T)
         d = p - p.take(_PAR, axis=1)  # (take: cheaper than fancy indexing)
-        n = np.sqrt(_dot3(d, d))
+        n = np.sqrt(dot3(d, d))
         rot_dir = np.ascontiguousarray((rotations @ self._rest_col)[:, :, 0].T)
         dirs = d / np.maximum(n, 1e-12)
         if not n[1:].min() > 1e-6:  # a collapsed (or NaN) bone, rare: its rotation's direction
@@ -88,7 +88,7 @@ class PoseRecovery:
         w = np.add(rot_dir[:, 1:], dirs[:, 1:], out=u[0])
         u[1] = dirs[:, 1:]
         outer = u[:, :, None] * u[:, None, :]  # (2, 3, 3, 30): u_i u_j
-        outer[0] *= 2.0 / np.maximum(_dot3(w, w), 1e-12)
+        outer[0] *= 2.0 / np.maximum(dot3(w, w), 1e-12)
         outer[1] *= 2.0
         hv_hw = np.empty((2, N - 1, 3, 3))
         np.subtract(_EYE_COL, outer, out=hv_hw.transpose(0, 2, 3, 1))

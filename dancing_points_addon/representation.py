@@ -27,7 +27,7 @@ def norm(x: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("...i,...i->...", x, x))
 
 
-def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Dot products of component-major vectors ``(3, …)``, summed in the order
     :func:`norm`'s einsum uses (``(x + z) + y``), so both give the same bits."""
     p = a * b
@@ -252,8 +252,8 @@ def rot6d_to_matrix(x: np.ndarray) -> np.ndarray:
     a, b = x.reshape(-1, 6).T.take(_GS_ROWS, axis=0).reshape(2, 6, -1)
     e = np.empty((3, 6, a.shape[1]))
     e1, e2 = e[0], e[1]
-    np.divide(a, np.maximum(np.sqrt(_dot3(a[:3], a[:3])), 1e-12), out=e1)
-    b = b - _dot3(e1[:3], b[:3]) * e1
-    np.divide(b, np.maximum(np.sqrt(_dot3(b[:3], b[:3])), 1e-12), out=e2)
+    np.divide(a, np.maximum(np.sqrt(dot3(a[:3], a[:3])), 1e-12), out=e1)
+    b = b - dot3(e1[:3], b[:3]) * e1
+    np.divide(b, np.maximum(np.sqrt(dot3(b[:3], b[:3])), 1e-12), out=e2)
     np.subtract(e1[1:4] * e2[2:5], e1[2:5] * e2[1:4], out=e[2, :3])  # e1 × e2
     return e[:, :3].transpose(2, 1, 0).copy().reshape(lead + (3, 3))

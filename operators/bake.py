@@ -21,7 +21,7 @@ from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon import skinning
 from ..dancing_points_addon.skeleton import JOINT_NAMES, PARENTS
 from . import compat
-from .props import KIND_DUET, is_duet
+from .props import KIND_DUET, ROLE_PROP, is_duet
 
 ROLES = ("leader", "follower")
 ROLE_LABEL = {"leader": "Leader", "follower": "Follower"}
@@ -246,8 +246,8 @@ def bake_duet(context, duet, take_name, frame_start=1):
             action = key_armature(arm, "DP {:s} {:s} v{:d}".format(label, short, version), pos, rot, frame_start)
             created.add(action)
             body = build_body("DP {:s} Body".format(label), arm, bv, ROLE_COLOUR[role], coll, created)
-            arm["dp_role"] = role
-            body["dp_role"] = role
+            arm[ROLE_PROP] = role
+            body[ROLE_PROP] = role
             rigs[role] = (arm, body)
             all_points.append(bm.to_blender(pos[:: max(1, len(pos) // 200)]).reshape(-1, 3))
         _hide_previous(take_name, coll)

@@ -16,6 +16,8 @@ KIND_NONE, KIND_TAKE, KIND_DUET = 'NONE', 'TAKE', 'DUET'
 DEVICE_PROP = "dp_device"
 # Animated ID property on the empties: 1 tracked, 0 lost (SPEC §3 lost tracking).
 TRACKED_PROP = "dp_tracked"
+ROLE_PROP = "dp_role"  # on a baked armature or body: "leader" or "follower"
+ROLES = ("leader", "follower")
 DEVICES = ("head", "lhand", "rhand")
 DEVICE_OBJECT_NAMES = {"head": "Head", "lhand": "LeftHand", "rhand": "RightHand"}
 

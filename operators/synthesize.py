@@ -22,10 +22,6 @@ from . import bake
 from .props import active_take
 from .take_io import TakeError, take_from_collection
 
-_NET_CACHE = {}
-
-
-
 
 def _preferences(context):
     try:
@@ -35,8 +31,10 @@ def _preferences(context):
         return None
 
 
-def resolve_model_dir(context, explicit=""):
-    """Operator property > ``$DP_MODEL_DIR`` > preferences > the bundled ``models/``."""
+def model_dir_choice(context, explicit=""):
+    """The models folder the user chose: operator property > ``$DP_MODEL_DIR`` >
+    preferences > the bundled ``models/`` (Blender's ``//`` paths made absolute;
+    checked by :func:`~.nets.load_nets`)."""
     prefs = _preferences(context)
     for cand in (explicit, os.environ.get(MODEL_ENV, ""), getattr(prefs, "model_dir", "") if prefs else ""):
         if cand:
@@ -89,7 +87,7 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
         take = take_from_collection(context, coll)
         prefs = _preferences(context)
         threads = int(getattr(prefs, "onnx_threads", 1)) if prefs else 1
-        synth = make_synthesizer(SynthesisOptions(models=resolve_model_dir(context, self.model_dir), threads=threads,
+        synth = make_synthesizer(SynthesisOptions(models=model_dir_choice(context, self.model_dir), threads=threads,
                                                   height=take.height, foot_lock=self.foot_lock, hand_ik=self.hand_ik))
         return coll, take, synth
 

@@ -6,7 +6,7 @@ loaded as JSON presets)."""
 
 import bpy
 
-from ..operators.retarget.props import ROLE_PROP
+from ..operators.props import ROLE_PROP
 from .common import SubPanel, split_layout
 
 

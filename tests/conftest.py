@@ -16,6 +16,14 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
+@pytest.fixture
+def dp_extension():
+    """The extension enabled in ``bpy``; the value is its module name ``bl_ext.<repo>.dancing_points``."""
+    from ext_util import enable_extension
+
+    return enable_extension()
+
+
 @pytest.fixture(scope="session")
 def salsa_dir():
     if not SALSA.exists():

@@ -28,7 +28,6 @@ import shutil
 import sys
 import tempfile
 
-import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 EXTENSION_ID = "dancing_points"
@@ -119,8 +118,3 @@ def _cleanup():
     shutil.rmtree(_repo_dir, ignore_errors=True)
     _repo_dir = None
 
-
-@pytest.fixture
-def dp_extension():
-    """The extension enabled in ``bpy``; the value is its module name ``bl_ext.<repo>.dancing_points``."""
-    return enable_extension()

@@ -12,7 +12,7 @@ import zipfile
 import pytest
 
 import ext_util
-from ext_util import ROOT, dp_extension  # noqa: F401  (fixture)
+from ext_util import ROOT
 
 bpy = pytest.importorskip("bpy")
 
@@ -66,7 +66,7 @@ def test_blender_builds_package_without_dev_files(tmp_path):
     for required in ("blender_manifest.toml", "__init__.py", "preferences.py",
                      "operators/__init__.py", "panels/__init__.py", "dancing_points_addon/__init__.py"):
         assert required in names
-    excluded = ("training/", "tests/", ".ci/", ".venv/", ".git", "docs/", "cache/", "out/")
+    excluded = ("training/", "tools/", "tests/", ".ci/", ".venv/", ".git", "docs/", "cache/", "out/")
     leaked = [n for n in names if n.startswith(excluded) or "__pycache__/" in n or n.endswith(".pyc")]
     assert not leaked, leaked
     # The core in the zip is the bpy-free runtime: no training-only module, no developer tool.

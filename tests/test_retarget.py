@@ -728,5 +728,6 @@ def test_panel_draws_and_rig_files_load(scene, tmp_path):
     assert arm.type == 'ARMATURE' and len(arm.data.bones) == len(scene["ue"]["leader"].data.bones)
     arm = rmod.load_rig_file(str(ASSETS / AVATARS["follower"]))
     assert len(arm.data.bones) == 84
-    with pytest.raises(rmod.RetargetFailure, match="unsupported rig file type"):
+    with pytest.raises(import_from_extension("dancing_points_addon.retarget").RetargetError,
+                       match="unsupported rig file type"):
         rmod.load_rig_file(str(ASSETS / "VALID_AVATARS_LICENSE.txt"))

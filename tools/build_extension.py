@@ -23,7 +23,7 @@ import subprocess
 import sys
 import tempfile
 
-from dancing_points_addon.errors import InputError, one_line
+from dancing_points_addon.errors import InputError, UserError, error_message
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 ONNXRUNTIME = "onnxruntime==1.22.1"
@@ -65,7 +65,7 @@ def download_wheels(platform: str, cache_dir: str) -> list[str]:
                 break
             last = res.stderr.strip().splitlines()[-1:] or ["pip failed"]
         else:
-            raise InputError(None, f"cannot download {ONNXRUNTIME} for {platform}: {last[0]}")
+            raise UserError(f"cannot download {ONNXRUNTIME} for {platform}: {last[0]}")
     wheels = sorted(glob.glob(os.path.join(dest, "*.whl")))
     return [w for w in wheels if not os.path.basename(w).lower().startswith("numpy-")]
 
@@ -120,7 +120,7 @@ def build(out_dir: str = "dist", wheels: bool = True, platforms=None, cache_dir=
         before = set(glob.glob(os.path.join(out_dir, "*.zip")))
         res = blender_extension_cli(*args)
         if res.returncode != 0:
-            raise InputError(None, "extension build failed: " + " ".join((res.stderr or res.stdout).split())[-400:])
+            raise UserError("extension build failed: " + " ".join((res.stderr or res.stdout).split())[-400:])
         zips = sorted(set(glob.glob(os.path.join(out_dir, "*.zip"))) - before) or \
             sorted(glob.glob(os.path.join(out_dir, "dancing_points-*.zip")))
         for z in zips:
@@ -142,8 +142,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     try:
         zips = build(args.output, wheels=not args.no_wheels, platforms=args.platform or list(PLATFORMS))
-    except InputError as exc:
-        print(f"error: {one_line(exc)}", file=sys.stderr)
+    except UserError as exc:
+        print(f"error: {error_message(exc)}", file=sys.stderr)
         return 2
     print("\n".join(zips))
     return 0

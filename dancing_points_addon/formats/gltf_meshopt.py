@@ -24,6 +24,7 @@ import struct
 import numpy as np
 
 from ..errors import UserError
+from .files import atomic_output
 
 EXTENSION = "EXT_meshopt_compression"
 _GLB_MAGIC = 0x46546C67
@@ -432,12 +433,10 @@ def decompress_glb(src, dst) -> str:
     js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     js += b" " * ((4 - len(js) % 4) % 4)
     total = 12 + 8 + len(js) + 8 + len(out)
-    tmp = os.fspath(dst) + ".part"
-    with open(tmp, "wb") as fh:
+    with atomic_output(dst, "wb") as fh:
         fh.write(struct.pack("<III", _GLB_MAGIC, 2, total))
         fh.write(struct.pack("<II", len(js), _CHUNK_JSON))
         fh.write(js)
         fh.write(struct.pack("<II", len(out), _CHUNK_BIN))
         fh.write(bytes(out))
-    os.replace(tmp, dst)
     return os.fspath(dst)

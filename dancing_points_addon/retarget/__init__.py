@@ -18,18 +18,14 @@ The names below are the package's API (``from . import retarget as rt; rt.X``).
 """
 from .contacts import detect_contacts, planted
 from .holds import close_hands
-from .mapping import (PRESET_DIR, ROOT_CHAIN, SIDES, RetargetError, auto_mapping, builtin_conventions,
-                      detect_convention, load_preset, parse_chain, save_preset, validate_mapping)
-from .rig import TargetRig, basis_from_pose, channels, pose_from_basis, rotation_steps_deg, topological_order
+from .mapping import RetargetError, auto_mapping, builtin_conventions, load_preset, save_preset, validate_mapping
+from .rig import TargetRig, channels, pose_from_basis, rotation_steps_deg
 from .solver import Retargeter
-from .source import (FOOT_POINTS, LANDMARKS, duet_origin, source_landmarks, source_world, source_wrists,
-                     spec_pose_from_channels)
+from .source import FOOT_POINTS, duet_origin, source_landmarks, source_world, source_wrists, spec_pose_from_channels
 
 __all__ = [
-    "PRESET_DIR", "ROOT_CHAIN", "SIDES", "RetargetError", "auto_mapping", "builtin_conventions",
-    "detect_convention", "load_preset", "parse_chain", "save_preset", "validate_mapping",
-    "FOOT_POINTS", "LANDMARKS", "duet_origin", "source_landmarks", "source_world", "source_wrists",
-    "spec_pose_from_channels",
-    "TargetRig", "basis_from_pose", "channels", "pose_from_basis", "rotation_steps_deg", "topological_order",
+    "RetargetError", "auto_mapping", "builtin_conventions", "load_preset", "save_preset", "validate_mapping",
+    "FOOT_POINTS", "duet_origin", "source_landmarks", "source_world", "source_wrists", "spec_pose_from_channels",
+    "TargetRig", "channels", "pose_from_basis", "rotation_steps_deg",
     "Retargeter", "detect_contacts", "planted", "close_hands",
 ]

@@ -28,17 +28,13 @@ import bpy
 from bpy.props import CollectionProperty, IntProperty, PointerProperty
 
 from . import ops
-from .jobs import duet_armatures, hide_duet_bodies, retarget_duet_onto, retarget_one, retarget_pair
-from .keying import key_rig, keyed_world
-from .mapping import mapping_for, set_mapping, stored_mapping
+from .jobs import duet_armatures, hide_duet_bodies, retarget_duet_onto
 from .props import DP_RetargetBoneMap, DP_RetargetSettings
-from .rig import RetargetFailure, load_rig_file, reference_basis, source_motion, target_rig
+from .rig import load_rig_file, source_motion
 
-__all__ = [
-    "RetargetFailure", "duet_armatures", "hide_duet_bodies", "key_rig", "keyed_world", "load_rig_file",
-    "mapping_for", "reference_basis", "retarget_duet_onto", "retarget_one", "retarget_pair", "set_mapping",
-    "source_motion", "stored_mapping", "target_rig", "register", "unregister",
-]
+# what the batch, the docs' script and the tests use
+__all__ = ["duet_armatures", "hide_duet_bodies", "load_rig_file", "retarget_duet_onto", "source_motion",
+           "register", "unregister"]
 
 classes = (DP_RetargetBoneMap, DP_RetargetSettings) + ops.classes
 

@@ -8,13 +8,14 @@ import bpy
 import numpy as np
 
 from ...dancing_points_addon import retarget as rt
+from ...dancing_points_addon.retarget import RetargetError
 from ...dancing_points_addon.errors import UserError, error_message
 from .. import bake
-from ..props import is_duet
+from ..props import ROLE_PROP, ROLES, is_duet
 from .keying import key_rig, keyed_world
 from .mapping import mapping_for, stored_mapping
-from .props import ROLE_PROP, ROLES, SOURCE_PROP, TARGET_PROP
-from .rig import RetargetFailure, source_motion, target_rig
+from .props import SOURCE_PROP, TARGET_PROP
+from .rig import source_motion, target_rig
 
 
 class _Job:
@@ -22,19 +23,19 @@ class _Job:
 
     def __init__(self, source, target, preset="", foot_lock=True, origin=None):
         if source is None or source.type != 'ARMATURE':
-            raise RetargetFailure("the source must be a Dancing Points armature")
+            raise RetargetError("the source must be a Dancing Points armature")
         if target is None or target.type != 'ARMATURE':
-            raise RetargetFailure("the target must be an armature")
+            raise RetargetError("the target must be an armature")
         if source == target:
-            raise RetargetFailure("source and target are the same armature")
+            raise RetargetError("source and target are the same armature")
         self.source, self.target = source, target
         bpy.context.view_layer.update()  # up-to-date matrix_world of objects moved since the last evaluation
         self.frames, self.pos, self.rot, bv, self.src_matrix = source_motion(source)
         try:
             mapping = mapping_for(target, preset)
             self.ret = rt.Retargeter(bv, target_rig(target), mapping, foot_lock=foot_lock)
-        except rt.RetargetError as exc:
-            raise RetargetFailure("{:s}: {:s}".format(target.name, str(exc))) from None
+        except RetargetError as exc:
+            raise RetargetError("{:s}: {:s}".format(target.name, error_message(exc))) from None
         if origin is None:
             origin = _duet_origin(source)
         self.pose = self.ret.solve(self.pos, self.rot, self.src_matrix, fps=_fps(), origin=origin)
@@ -62,7 +63,7 @@ def _duet_origin(*sources):
     for src in sources:
         try:
             _, pos, rot, _, mat = source_motion(src)
-        except RetargetFailure:
+        except RetargetError:
             continue
         pts.append(rt.source_world(pos, rot, mat)[0])
     return rt.duet_origin(*pts) if pts else None
@@ -146,18 +147,18 @@ def retarget_duet_onto(leader_rig_obj, follower_rig_obj, duet_collection, contex
     onto two armature objects (either may be None to skip that dancer). With
     ``hide_bodies`` the duet's default bodies are hidden in renders and the
     viewport. Returns ``{role: {"action", "scale", ...}}``; raises
-    :class:`RetargetFailure` with a one-line message."""
+    :class:`RetargetError` with a one-line message."""
     context = context or bpy.context
     if duet_collection is None or not is_duet(duet_collection):
-        raise RetargetFailure("not a Dancing Points duet collection")
+        raise RetargetError("not a Dancing Points duet collection")
     arms = duet_armatures(duet_collection)
     pairs = [(arms.get(role), rig) for role, rig in zip(ROLES, (leader_rig_obj, follower_rig_obj))
              if rig is not None]
     if not pairs:
-        raise RetargetFailure("no rig to retarget onto")
+        raise RetargetError("no rig to retarget onto")
     for src, rig in pairs:
         if src is None:
-            raise RetargetFailure("the duet has no armature for a dancer")
+            raise RetargetError("the duet has no armature for a dancer")
     if len(pairs) == 2:
         out = retarget_pair(context, pairs, foot_lock=foot_lock, close_hands=close_hands)
     else:

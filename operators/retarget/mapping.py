@@ -7,7 +7,7 @@ import os
 import bpy
 
 from ...dancing_points_addon import retarget as rt
-from .rig import RetargetFailure
+from ...dancing_points_addon.retarget import RetargetError
 
 
 def stored_mapping(obj):
@@ -44,7 +44,7 @@ def mapping_for(obj, preset=""):
         return mapping
     mapping, _ = rt.auto_mapping(names)
     if not mapping:
-        raise RetargetFailure("no bone naming convention recognised on '{:s}' (CMU/BVH, Mixamo, Rigify DEF-, "
+        raise RetargetError("no bone naming convention recognised on '{:s}' (CMU/BVH, Mixamo, Rigify DEF-, "
                               "Unreal): load a preset or fill in the mapping".format(obj.name))
     set_mapping(obj, mapping)
     return mapping

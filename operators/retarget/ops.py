@@ -8,12 +8,12 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from ...dancing_points_addon import retarget as rt
+from ...dancing_points_addon.retarget import RetargetError
 from ...dancing_points_addon.errors import error_message
 from ..props import is_duet
 from .jobs import hide_duet_bodies, retarget_duet_onto, retarget_one, retarget_pair
 from .mapping import mapping_for, set_mapping, stored_mapping
 from .props import settings
-from .rig import RetargetFailure
 
 
 class _RetargetOperator:
@@ -49,7 +49,7 @@ class DANCING_POINTS_OT_retarget(_RetargetOperator, bpy.types.Operator):
         src = bpy.data.objects.get(self.source)
         tgt = bpy.data.objects.get(self.target)
         if src is None or tgt is None:
-            raise RetargetFailure("no object named '{:s}'".format(self.source if src is None else self.target))
+            raise RetargetError("no object named '{:s}'".format(self.source if src is None else self.target))
         info = retarget_one(context, src, tgt, self.preset, self.foot_lock, self.close_hands)
         if "warning" in info:
             self.report({'WARNING'}, info["warning"])
@@ -85,7 +85,7 @@ class DANCING_POINTS_OT_retarget_duet(_RetargetOperator, bpy.types.Operator):
             fs = s.follower_source if s else None
             pairs = [(a, b) for a, b in ((ls, lt), (fs, ft)) if a is not None and b is not None]
             if not pairs:
-                raise RetargetFailure("pick a source and a target armature for at least one dancer")
+                raise RetargetError("pick a source and a target armature for at least one dancer")
             if len(pairs) == 2:
                 out = retarget_pair(context, pairs, foot_lock=foot_lock, close_hands=close)
             else:
@@ -109,7 +109,7 @@ def _preset_file(context, filepath):
 def _target_from(context, name):
     obj = bpy.data.objects.get(name) if name else getattr(context, "active_object", None)
     if obj is None or obj.type != 'ARMATURE':
-        raise RetargetFailure("no target armature ('{:s}')".format(name or "the active object"))
+        raise RetargetError("no target armature ('{:s}')".format(name or "the active object"))
     return obj
 
 
@@ -149,7 +149,7 @@ class DANCING_POINTS_OT_retarget_map_save(_RetargetOperator, bpy.types.Operator)
         obj = _target_from(context, self.target)
         path = bpy.path.abspath(_preset_file(context, self.filepath))
         if not path:
-            raise RetargetFailure("no file name")
+            raise RetargetError("no file name")
         os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
         rt.save_preset(path, stored_mapping(obj), name=obj.name)
         return "Saved the bone map of '{:s}' to {:s}".format(obj.name, path)

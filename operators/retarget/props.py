@@ -6,11 +6,11 @@ the names of the custom properties it sets on objects."""
 import bpy
 from bpy.props import BoolProperty, PointerProperty, StringProperty
 
+from ..props import ROLE_PROP, ROLES
+
 REF_PROP = "dp_reference_basis"  # on a target rig: its reference pose (matrix_basis, flattened)
 SOURCE_PROP = "dp_retarget_source"  # on a retargeted rig: the DP armature it follows
 TARGET_PROP = "dp_retarget_target"  # on a DP armature: the rig it was retargeted onto
-ROLE_PROP = "dp_role"  # on a DP armature or body: "leader" or "follower"
-ROLES = ("leader", "follower")
 
 
 class DP_RetargetBoneMap(bpy.types.PropertyGroup):

@@ -12,14 +12,10 @@ import numpy as np
 
 from ...dancing_points_addon import blender_math as bm
 from ...dancing_points_addon import retarget as rt
-from ...dancing_points_addon.errors import UserError
+from ...dancing_points_addon.retarget import RetargetError
 from ...dancing_points_addon.skeleton import JOINT_NAMES
 from .. import bake, compat
 from .props import REF_PROP
-
-
-class RetargetFailure(UserError):
-    """One user-facing line."""
 
 
 def mat(m):
@@ -71,17 +67,17 @@ def source_motion(arm_obj):
     bones = arm_obj.data.bones
     missing = [n for n in JOINT_NAMES if n not in bones]
     if missing:
-        raise RetargetFailure("'{:s}' is not a Dancing Points armature (no bone {:s})".format(
+        raise RetargetError("'{:s}' is not a Dancing Points armature (no bone {:s})".format(
             arm_obj.name, missing[0]))
     action, slot = compat.assigned_action(arm_obj)
     if action is None:
-        raise RetargetFailure("'{:s}' has no animation to retarget".format(arm_obj.name))
+        raise RetargetError("'{:s}' has no animation to retarget".format(arm_obj.name))
     fc = compat.find_fcurve(action, slot, 'pose.bones["root"].location', 0)
     if fc is None:
-        raise RetargetFailure("'{:s}' has no root motion keys".format(arm_obj.name))
+        raise RetargetError("'{:s}' has no root motion keys".format(arm_obj.name))
     frames, _, _ = compat.read_keys(fc)
     if len(frames) < 2:
-        raise RetargetFailure("'{:s}' has fewer than 2 keyframes".format(arm_obj.name))
+        raise RetargetError("'{:s}' has fewer than 2 keyframes".format(arm_obj.name))
     T = len(frames)
     quats = np.zeros((T, len(JOINT_NAMES), 4))
     quats[..., 0] = 1.0
@@ -105,7 +101,7 @@ def source_motion(arm_obj):
 
 def _import_error(path, exc):
     """The importer's error as one line naming the file."""
-    return RetargetFailure("{:s}: {:s}".format(path, compat.operator_error_text(exc)))
+    return RetargetError("{:s}: {:s}".format(path, compat.operator_error_text(exc)))
 
 
 def load_rig_file(path, context=None):
@@ -117,7 +113,7 @@ def load_rig_file(path, context=None):
     context = context or bpy.context
     path = os.path.abspath(bpy.path.abspath(path))
     if not os.path.isfile(path):
-        raise RetargetFailure("no such file: {:s}".format(path))
+        raise RetargetError("no such file: {:s}".format(path))
     ext = os.path.splitext(path)[1].lower()
     before = set(bpy.data.objects)
     if ext == ".blend":
@@ -147,8 +143,8 @@ def load_rig_file(path, context=None):
         except RuntimeError as exc:
             raise _import_error(path, exc) from None
     else:
-        raise RetargetFailure("unsupported rig file type '{:s}' (.blend, .glb, .gltf, .fbx)".format(ext))
+        raise RetargetError("unsupported rig file type '{:s}' (.blend, .glb, .gltf, .fbx)".format(ext))
     arms = [o for o in bpy.data.objects if o not in before and o.type == 'ARMATURE']
     if not arms:
-        raise RetargetFailure("{:s} has no armature".format(path))
+        raise RetargetError("{:s} has no armature".format(path))
     return max(arms, key=lambda o: len(o.data.bones))
