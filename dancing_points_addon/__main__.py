@@ -2,9 +2,11 @@
 import os
 import sys
 
+from .argtypes import SINGLE_THREAD_ENV  # (imports no numpy)
+
 if __name__ == "__main__" and sys.argv[1:2] == ["benchmark"]:
     # SPEC §6 latency is one thread: numpy's BLAS too (read when numpy loads)
-    for _k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
+    for _k in SINGLE_THREAD_ENV:
         os.environ.setdefault(_k, "1")
 
 from .cli import main  # noqa: E402

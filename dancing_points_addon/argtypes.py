@@ -1,4 +1,7 @@
-"""Command-line pieces shared by every parser: the option types and the one-line parser.
+"""Command-line conventions shared by every command: the exit statuses, the
+one-line parser, the option types, :func:`printable` (file names as a terminal
+may show them), :func:`exit_for` (the one line and exit status of a failed
+command) and the environment that keeps numeric libraries on one thread.
 
 Used by :mod:`.cli` (``python -m dancing_points_addon``), by :mod:`.batch` (its
 options, shared by the ``batch`` subcommand and Blender's ``convert`` command)
@@ -9,8 +12,18 @@ from __future__ import annotations
 
 import argparse
 import math
+import unicodedata
 
-from .errors import UserError
+from .errors import UserError, error_message, one_line
+
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
+# Set to "1" before numpy loads (the benchmark, batch workers): one BLAS/OpenMP thread.
+SINGLE_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+                     "VECLIB_MAXIMUM_THREADS")
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM: unwinds like Ctrl-C (the temporary file being written is removed)."""
 
 
 class UsageError(UserError):
@@ -45,8 +58,56 @@ def positive_int(text: str) -> int:
     return v
 
 
+MAX_THREADS = 64
+
+
+def thread_count(text: str) -> int:
+    """``--threads``: ONNX Runtime threads, 1 to :data:`MAX_THREADS`."""
+    v = positive_int(text)
+    if v > MAX_THREADS:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_THREADS}, got {text!r}")
+    return v
+
+
+def printable(text) -> str:
+    """``text`` safe to print as part of one line: control characters (newlines,
+    escape codes), line and paragraph separators and undecodable bytes of a file
+    name (lone surrogates) are written as Python escapes (``\\n``, ``\\x1b``,
+    ``\\udcff``); everything else, accented letters included, is kept."""
+    text = str(text)
+    if text.isprintable():
+        return text
+    # (not printable but harmless: the other spaces, e.g. no-break, ideographic)
+    return "".join(ch if ch.isprintable() or unicodedata.category(ch) == "Zs" else repr(ch)[1:-1]
+                   for ch in text)
+
+
 def height_metres(text: str) -> float:
     v = positive_float(text)
     if not 0.5 <= v <= 3.0:
         raise argparse.ArgumentTypeError(f"must be a height in metres between 0.5 and 3.0, got {text!r}")
     return v
+
+
+def exit_for(exc: BaseException, err=None, debug: bool = False) -> int:
+    """Print the one line of a command that ended with ``exc`` on ``err``
+    (stderr) and return its exit status: 2 for a :class:`UserError`, 130 for
+    Ctrl-C, 143 for SIGTERM, 1 for anything unexpected (re-raised when
+    ``debug``: ``DP_DEBUG=1``)."""
+    import sys
+
+    err = sys.stderr if err is None else err
+    if isinstance(exc, UserError):
+        if debug and not isinstance(exc, UsageError):
+            raise exc
+        print(printable(f"error: {error_message(exc)}"), file=err)
+        return EXIT_BAD_INPUT
+    if isinstance(exc, KeyboardInterrupt):
+        terminated = isinstance(exc, Terminated)
+        print("error: terminated" if terminated else "error: interrupted", file=err)
+        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+    if debug:
+        raise exc
+    print(printable(f"error: internal error ({type(exc).__name__}: {one_line(exc)}); "
+                    f"run with DP_DEBUG=1 for details"), file=err)
+    return EXIT_FAILURE

@@ -5,22 +5,30 @@ Each subcommand is one ``cmd_<name>(args) -> int`` function plus one
 types and the one-line parser are :mod:`.argtypes` (shared with :mod:`.batch`,
 whose options the ``batch`` subcommand takes).
 
-Errors never show a traceback: bad input (an :class:`InputError`, a bad option)
-prints one line ``error: <file>:<line>: <what>`` on stderr and exits with 2;
-an unexpected failure prints one line and exits with 1 (``DP_DEBUG=1`` shows
-the traceback). Outputs are written atomically, so nothing half-written is
-ever left at an output path and an existing file survives a failed run.
+Errors never show a traceback: bad input (an :class:`InputError`, a bad option,
+missing or damaged models) prints one line ``error: <file>:<line>: <what>`` on
+stderr and exits with 2; an unexpected failure prints one line and exits with 1
+(``DP_DEBUG=1`` shows the traceback). Ctrl-C exits with 130, SIGTERM with 143,
+both after removing the temporary file being written.
+
+Outputs: ``extract`` and ``synthesize`` replace an existing output file (never
+their input: an output that is the input file is refused). They are written
+atomically, so nothing half-written is ever left at an output path and an
+existing file survives a failed run; ``synthesize -o OUT.bvh``'s two files
+(``OUT_leader.bvh``, ``OUT_follower.bvh``) are replaced both or neither.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
-import sys
+import signal
+import threading
 
-from .argtypes import Parser, UsageError, height_metres, positive_float, positive_int
-from .errors import InputError, UserError, error_message, one_line
+from .argtypes import (EXIT_OK, Parser, Terminated, exit_for, height_metres, positive_float, positive_int,
+                       printable, thread_count)
+from .errors import InputError
 
-EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT = 0, 1, 2
 
 
 # --------------------------------------------------------------------------- shared options
@@ -49,8 +57,23 @@ def check_output_path(path) -> None:
         raise InputError(path, "output folder is not writable")
 
 
+def check_not_input(args, outputs) -> None:
+    """Refuse (before any work) an output that is one of the command's input
+    files (the same file, also through a link): it would be overwritten."""
+    from .formats.files import same_file
+
+    inputs = [args.input] + ([args.asf] if getattr(args, "asf", None) else [])
+    for out in outputs:
+        if not os.path.lexists(out):
+            continue
+        for inp in inputs:
+            if os.path.lexists(inp) and same_file(out, inp):
+                raise InputError(out, f"this output is the input file {inp}: it would be overwritten; "
+                                      f"choose another output path")
+
+
 def load_input_from_args(args):
-    from .formats.take import load_input
+    from .formats.inputs import load_input
     return load_input(args.input, asf=args.asf, input_fps=args.input_fps, height=args.height)
 
 
@@ -60,11 +83,12 @@ def cmd_extract(args) -> int:
     from .formats.take import write_take
 
     check_output_path(args.output)
+    check_not_input(args, [args.output])
     take = load_input_from_args(args)
     write_take(args.output, take)
     dur = float(take.time[-1] - take.time[0])
     rate = (take.n_frames - 1) / dur if dur > 0 else float("nan")
-    print(f"wrote {args.output}: {take.n_frames} rows, {dur:.2f} s, {rate:.1f} Hz")
+    print(printable(f"wrote {args.output}: {take.n_frames} rows, {dur:.2f} s, {rate:.1f} Hz"))
     return EXIT_OK
 
 
@@ -74,7 +98,8 @@ def _parser_extract(sub) -> None:
                                    "head and wrist positions, head-device and wrist orientations, "
                                    "at the input's own frame rate.")
     add_input_arguments(p)
-    p.add_argument("-o", "--output", required=True, metavar="TAKE.csv", help="output take file")
+    p.add_argument("-o", "--output", required=True, metavar="TAKE.csv",
+                   help="output take file (an existing file is replaced; never the input)")
     p.set_defaults(func=cmd_extract)
 
 
@@ -83,6 +108,7 @@ def _parser_extract(sub) -> None:
 def cmd_synthesize(args) -> int:
     import time
 
+    from .nets import check_models
     from .runtime import SynthesisOptions, Synthesizer, duet_motions, save_npz
 
     out = args.output
@@ -91,35 +117,29 @@ def cmd_synthesize(args) -> int:
     ext = ext.lower()
     if ext not in (".npz", ".bvh"):
         raise InputError(out, "output must end in .npz or .bvh")
+    outputs = [out] if ext == ".npz" else [f"{base}_{r}.bvh" for r in ("leader", "follower")]
+    for path in outputs:
+        check_output_path(path)
+    check_not_input(args, outputs)
     take = load_input_from_args(args)
     t0 = time.perf_counter()
+    check_models(args.models, args.threads)  # --models, else $DP_MODEL_DIR, else the bundled ones
     synth = Synthesizer(SynthesisOptions(models=args.models, threads=args.threads, height=args.height or take.height,
                                          foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik))
     duet = synth.synthesize(take)
     if ext == ".npz":
         save_npz(duet, out)
-        written = [out]
     else:
         from .formats.bvh import bvh_text
-        from .formats.files import atomic_output
+        from .formats.files import atomic_outputs
 
-        written = []
-        try:
-            for role, motion in duet_motions(duet).items():
-                path = f"{base}_{role}.bvh"
-                existed = os.path.exists(path)
-                with atomic_output(path, "w", newline="\n") as f:
-                    f.write(bvh_text(motion))
-                if not existed:
-                    written.append(path)
-        except BaseException:
-            for path in written:  # never leave one dancer without the other
-                os.remove(path)
-            raise
-        written = [f"{base}_{r}.bvh" for r in ("leader", "follower")]
+        motions = duet_motions(duet)
+        # both or neither: never one dancer without the other, nor a new leader beside an old follower
+        atomic_outputs([(path, lambda f, m=motions[role]: f.write(bvh_text(m)))
+                        for path, role in zip(outputs, ("leader", "follower"))], "w", newline="\n")
     dt = time.perf_counter() - t0
-    print(f"wrote {', '.join(written)}: {duet.n_frames} frames at 30 Hz, "
-          f"{duet.n_frames / 30.0:.1f} s of duet in {dt:.2f} s")
+    print(printable(f"wrote {', '.join(outputs)}: {duet.n_frames} frames at 30 Hz, "
+                    f"{duet.n_frames / 30.0:.1f} s of duet in {dt:.2f} s"))
     return EXIT_OK
 
 
@@ -129,9 +149,13 @@ def _parser_synthesize(sub) -> None:
                                    "three points. OUT.npz: SPEC §4 arrays; OUT.bvh: writes OUT_leader.bvh "
                                    "and OUT_follower.bvh on the CMU skeleton (Y up, metres).")
     add_input_arguments(p)
-    p.add_argument("-o", "--output", required=True, metavar="OUT.npz|OUT.bvh", help="output file")
-    p.add_argument("--threads", type=positive_int, default=1, metavar="N", help="onnxruntime threads (default 1)")
-    p.add_argument("--models", default=None, metavar="DIR", help="folder with the ONNX models")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.npz|OUT.bvh",
+                   help="output file (existing files are replaced, the two BVH files both or neither; "
+                        "never the input)")
+    p.add_argument("--threads", type=thread_count, default=1, metavar="N",
+                   help="onnxruntime threads (default 1, at most 64)")
+    p.add_argument("--models", default=None, metavar="DIR",
+                   help="folder with the ONNX models (default: $DP_MODEL_DIR, else the bundled models/)")
     p.add_argument("--no-foot-lock", action="store_true", help="turn contact-based foot locking off")
     p.add_argument("--no-hand-ik", action="store_true",
                    help="leave the leader's head and wrists where the network puts them (no IK onto the input)")
@@ -155,8 +179,10 @@ def _parser_benchmark(sub) -> None:
                                    "median and p99 per character-frame, split into features, networks "
                                    "and pose recovery, beside the compute floor of the same weights.")
     p.add_argument("--frames", type=positive_int, default=2000, metavar="N", help="timed duet frames (default 2000)")
-    p.add_argument("--threads", type=positive_int, default=1, metavar="N", help="onnxruntime threads (default 1)")
-    p.add_argument("--models", default=None, metavar="DIR", help="folder with the ONNX models")
+    p.add_argument("--threads", type=thread_count, default=1, metavar="N",
+                   help="onnxruntime threads (default 1, at most 64)")
+    p.add_argument("--models", default=None, metavar="DIR",
+                   help="folder with the ONNX models (default: $DP_MODEL_DIR, else the bundled models/)")
     p.add_argument("--no-foot-lock", action="store_true")
     p.add_argument("--no-hand-ik", action="store_true")
     p.set_defaults(func=cmd_benchmark)
@@ -176,10 +202,14 @@ def _parser_batch(sub) -> None:
     p = sub.add_parser("batch", help="many takes (files or folders) -> one duet each, in parallel",
                        description="Convert every take (.csv, .bvh, .amc; folders are searched "
                                    "recursively) to a baked duet, one output per take named after it, "
-                                   "on --jobs worker processes. A bad file is reported and skipped; the "
-                                   "exit status is 1 if any file failed, 130 when interrupted (Ctrl-C: "
-                                   "no partial outputs are left; --resume finishes the rest). "
-                                   "--format blend/fbx and --render need the bpy module.")
+                                   "on --jobs worker processes, with a result line per file as it "
+                                   "finishes (the report lists them in input order). A bad file is "
+                                   "reported and skipped; the exit status is 1 if any file failed, 130 "
+                                   "when interrupted (Ctrl-C: no partial outputs are left; --resume "
+                                   "finishes the rest), 2 for a bad command line or when another batch "
+                                   "is writing into OUT_DIR. Existing outputs are replaced only with "
+                                   "--overwrite, inputs never. --format blend/fbx and --render need the "
+                                   "bpy module.")
     add_arguments(p)
     p.set_defaults(func=cmd_batch)
 
@@ -199,22 +229,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
 def main(argv=None) -> int:
     debug = os.environ.get("DP_DEBUG", "") not in ("", "0")
+    installed, old_term = False, None
+    if threading.current_thread() is threading.main_thread() and hasattr(signal, "SIGTERM"):
+        try:
+            old_term, installed = signal.signal(signal.SIGTERM, _on_sigterm), True
+        except (ValueError, OSError):
+            pass
     try:
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
-    except UserError as exc:
-        if debug and not isinstance(exc, UsageError):
-            raise
-        print(f"error: {error_message(exc)}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
-    except Exception as exc:  # noqa: BLE001 - never a raw traceback for users
-        if debug:
-            raise
-        print(f"error: internal error ({type(exc).__name__}: {one_line(exc)}); "
-              f"run with DP_DEBUG=1 for details", file=sys.stderr)
-        return EXIT_FAILURE
+    except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - one line, never a raw traceback
+        return exit_for(exc, debug=debug)
+    finally:
+        if installed:
+            with contextlib.suppress(ValueError, OSError, TypeError):
+                signal.signal(signal.SIGTERM, old_term if old_term is not None else signal.SIG_DFL)

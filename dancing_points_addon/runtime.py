@@ -496,11 +496,13 @@ class Synthesizer:
 
 
 def save_npz(duet: Duet, path) -> None:
-    """Write a duet (SPEC §4) atomically: nothing is left at ``path`` on failure."""
-    from .formats.files import atomic_output
+    """Write a duet (SPEC §4) atomically: nothing is left at ``path`` on failure
+    (a full disk, Ctrl-C: the temporary file is removed, the zip writer closed
+    without a word)."""
+    from .formats.files import atomic_output, write_npz
 
     with atomic_output(path, "wb") as f:
-        np.savez_compressed(f, **duet.arrays())
+        write_npz(f, duet.arrays())
 
 
 def duet_motions(duet: Duet, bone_vectors: dict | None = None):

@@ -29,10 +29,10 @@ import sys
 import bpy
 
 from ..dancing_points_addon import batch as core_batch
-from ..dancing_points_addon.argtypes import Parser, UsageError
+from ..dancing_points_addon.argtypes import Parser, exit_for
 from ..dancing_points_addon.batch.options import synthesis_options
 from ..dancing_points_addon.batch.worker import worker_main, write_duet_files
-from ..dancing_points_addon.errors import InputError, UserError, error_message
+from ..dancing_points_addon.errors import UserError, error_message
 from . import compat
 from .batch_worker import enable_extension_in_bpy
 
@@ -47,10 +47,6 @@ into baked duets, one output per take, on --jobs worker processes.
 Run '{prog} convert --help' for every option.""".format(prog=PROG)
 
 _handle = None
-
-
-class BatchError(UserError):
-    """A failed take whose message is already the one line to report."""
 
 
 # --------------------------------------------------------------------------- the command
@@ -71,36 +67,27 @@ def cli(argv):
                     description="Convert takes into baked duets in parallel (see the batch command of "
                                 "python -m dancing_points_addon).")
     core_batch.add_arguments(parser, default_format="blend")
+    debug = os.environ.get("DP_DEBUG", "") not in ("", "0")
     try:
         args = parser.parse_args(argv[1:])
-    except UsageError as exc:
-        print("error: {:s}".format(" ".join(str(exc).split())), file=sys.stderr)
-        return 2
+        binary = bpy.app.binary_path
+        worker_cmd = [binary, "--background", "--command", COMMAND_ID, "worker"] if binary else None
+        return core_batch.run(args, worker_cmd=worker_cmd, in_blender=True)
     except SystemExit as exc:  # --help
         return int(exc.code or 0) if isinstance(exc.code, int) else 0
-    binary = bpy.app.binary_path
-    worker_cmd = [binary, "--background", "--command", COMMAND_ID, "worker"] if binary else None
-    try:
-        return core_batch.run(args, worker_cmd=worker_cmd, in_blender=True)
-    except InputError as exc:
-        print("error: {:s}".format(" ".join(str(exc).split())), file=sys.stderr)
-        return 2
-    except Exception as exc:  # noqa: BLE001 - one line, never a traceback
-        if os.environ.get("DP_DEBUG", "") not in ("", "0"):
-            raise
-        print("error: internal error ({:s}: {:s})".format(type(exc).__name__, " ".join(str(exc).split())),
-              file=sys.stderr)
-        return 1
+    except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - one line, never a traceback
+        return exit_for(exc, debug=debug)
 
 
 # --------------------------------------------------------------------------- one take
 
 def _op_error(exc, path=None):
-    """The one-line message of an operator's error report (``RuntimeError: Error: ...``)."""
+    """The one-line message of an operator's error report (see
+    :func:`~.compat.operator_error_text`), naming the take."""
     msg = compat.operator_error_text(exc)
     if path and path not in msg:
         msg = "{:s}: {:s}".format(path, msg)
-    return BatchError(msg)
+    return UserError(msg)
 
 
 def _fresh_scene():
@@ -128,10 +115,10 @@ def _render_video(context, tmp, n_frames, progress, f0, f1):
         except RuntimeError as exc:
             raise _op_error(exc) from None
         if 'FINISHED' not in res:
-            raise BatchError("the preview render did not finish")
+            raise UserError("the preview render did not finish")
         videos = sorted(f for f in os.listdir(folder) if not f.startswith("."))
         if not videos:
-            raise BatchError("the preview render wrote no video")
+            raise UserError("the preview render wrote no video")
         os.replace(os.path.join(folder, videos[0]), tmp)
     finally:
         if on_frame in bpy.app.handlers.render_write:
@@ -154,7 +141,7 @@ def _retarget_onto_rigs(context, duet_coll, opts, path):
         retarget.retarget_duet_onto(rigs.get("leader"), rigs.get("follower"), duet_coll, context,
                                     foot_lock=not opts.get("no_foot_lock"))
     except UserError as exc:
-        raise BatchError("{:s}: retarget: {:s}".format(path, error_message(exc))) from None
+        raise UserError("{:s}: retarget: {:s}".format(path, error_message(exc))) from None
 
 
 def convert_job(job, progress):
@@ -177,16 +164,16 @@ def convert_job(job, progress):
     except RuntimeError as exc:
         raise _op_error(exc, path) from None
     if 'FINISHED' not in res:
-        raise BatchError("{:s}: the take could not be imported".format(path))
+        raise UserError("{:s}: the take could not be imported".format(path))
     progress(0.1)
     coll = active_take(context)
     if coll is None:
-        raise BatchError("{:s}: the import made no take".format(path))
+        raise UserError("{:s}: the import made no take".format(path))
     take = take_from_collection(context, coll)
     try:
         synth = make_synthesizer(synthesis_options(opts, take.height))
     except UserError as exc:
-        raise BatchError(error_message(exc)) from None
+        raise UserError(error_message(exc)) from None
     duet = synth.synthesize(take, progress=lambda i, n: progress(0.1 + 0.6 * i / max(n, 1)))
     write_duet_files(temps, duet)
     if any(k in temps for k in ("blend", "fbx", "mp4")):
@@ -195,9 +182,12 @@ def convert_job(job, progress):
             _retarget_onto_rigs(context, duet_coll, opts, path)
     progress(0.8)
     if "blend" in temps:
-        res = bpy.ops.wm.save_as_mainfile(filepath=temps["blend"], copy=True, check_existing=False)
+        try:
+            res = bpy.ops.wm.save_as_mainfile(filepath=temps["blend"], copy=True, check_existing=False)
+        except RuntimeError as exc:
+            raise _op_error(exc, path) from None
         if 'FINISHED' not in res:
-            raise BatchError("{:s}: saving the .blend failed".format(path))
+            raise UserError("{:s}: saving the .blend failed".format(path))
     if "fbx" in temps:
         try:
             res = bpy.ops.export_scene.fbx(
@@ -209,7 +199,7 @@ def convert_job(job, progress):
         except RuntimeError as exc:
             raise _op_error(exc, path) from None
         if 'FINISHED' not in res:
-            raise BatchError("{:s}: the FBX export failed".format(path))
+            raise UserError("{:s}: the FBX export failed".format(path))
     if "mp4" in temps:
         _render_video(context, temps["mp4"], duet.n_frames, progress, 0.85, 1.0)
     return {"frames": int(duet.n_frames)}

@@ -153,9 +153,11 @@ def sample_fcurve(fc, frames):
 
 def operator_error_text(exc) -> str:
     """The one line of an error raised by a Blender operator (``RuntimeError:
-    Error: ...``, or a Python traceback of an importer): its last non-empty line,
-    without Blender's ``Error:`` prefix."""
-    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    Error: ...``; for an operator written in Python, e.g. an importer or the FBX
+    exporter, ``Error: Python: Traceback ...`` down to the exception's own line,
+    then Blender 5's ``Location: .../bpy/ops.py:N``): its last non-empty line that
+    is not a ``Location:`` line, without Blender's ``Error:`` prefix."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip() and not ln.strip().startswith("Location: ")]
     msg = lines[-1] if lines else type(exc).__name__
     for prefix in ("Error: ", "error: "):
         if msg.startswith(prefix):

@@ -15,12 +15,12 @@ import time
 import bpy
 from bpy.props import BoolProperty, StringProperty
 
-from ..dancing_points_addon.errors import InputError, error_message
+from ..dancing_points_addon.errors import InputError, UserError, error_message
 from ..dancing_points_addon.nets import MODEL_DIR, MODEL_ENV, ModelError, load_nets
 from ..dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from . import bake
 from .props import active_take
-from .take_io import TakeError, take_from_collection
+from .take_io import take_from_collection
 
 
 def _preferences(context):
@@ -81,8 +81,8 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
         coll = active_take(context, self.take)
         if coll is None:
             if self.take:
-                raise TakeError("no take named '{:s}'".format(self.take))
-            raise TakeError("no active take: import one (File > Import > Dancing Points take) "
+                raise UserError("no take named '{:s}'".format(self.take))
+            raise UserError("no active take: import one (File > Import > Dancing Points take) "
                             "or select one of its empties")
         take = take_from_collection(context, coll)
         prefs = _preferences(context)

@@ -7,7 +7,7 @@ space: location, rotation (quaternion, device-to-world as in the file) and an
 animated ``["dp_tracked"]`` flag (0 where the file had lost tracking; the
 location and rotation then hold the last tracked value).
 
-* ``.csv`` takes and CMU ``.amc`` files are read by the core (``take.load_input``).
+* ``.csv`` takes and CMU ``.amc`` files are read by the core (``formats.inputs.load_input``).
 * ``.bvh`` and ``.fbx`` files go through Blender's own importers; the three
   points are then read off the imported rig, which is removed again:
   head point = head of bone ``Head``; hands = head of ``LeftFingerBase`` /
@@ -37,19 +37,17 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 from bpy_extras.io_utils import ImportHelper, axis_conversion, orientation_helper
 
 from ..dancing_points_addon import blender_math as bm
-from ..dancing_points_addon.errors import InputError, UserError, error_message
+from ..dancing_points_addon.errors import InputError, UserError, error_message, regular_file
 from ..dancing_points_addon.resample import resample_take
 from ..dancing_points_addon.formats.naming import rig_side_bones, rig_tracked_bones
-from ..dancing_points_addon.formats.take import Take, load_input, take_from_tracked
+from ..dancing_points_addon.formats.inputs import check_take, load_input
+from ..dancing_points_addon.formats.limits import check_duration, check_height, check_rate
+from ..dancing_points_addon.formats.take import Take, take_from_tracked
 from . import compat
 from .props import (DEVICE_OBJECT_NAMES, DEVICE_PROP, DEVICES, KIND_TAKE, TRACKED_PROP, device_objects)
 
 FILE_TYPES = (".csv", ".bvh", ".fbx", ".amc")
 NET_FPS = 30.0
-
-
-class TakeError(UserError):
-    """A one-line, user-facing problem with a take in the scene."""
 
 
 # --------------------------------------------------------------------------- rig reading
@@ -79,13 +77,16 @@ def _restore_scene_state(scene, state):
     scene.frame_set(frame)
 
 
-def _precheck(path, ext):
+def _precheck(path, ext, input_fps=None):
     """Reject a malformed file with a one-line message before Blender's importer
-    sees it (the core BVH parser names the line; FBX: binary files only)."""
+    sees it (the core BVH parser names the line and checks the frame rate and
+    duration; FBX: binary files only)."""
+    regular_file(path, "a take file", missing="no such file")
     if ext == ".bvh":
         from ..dancing_points_addon.formats import bvh as core_bvh
         try:
-            data = core_bvh.parse_bvh(path)
+            with np.errstate(all="ignore"):
+                data = core_bvh.parse_bvh(path, input_fps=input_fps or None)
         except InputError:
             raise
         except Exception as exc:
@@ -109,7 +110,7 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
 
     Everything the importer made is removed again and the scene's frame rate,
     range and current frame are restored, whatever happens."""
-    _precheck(path, ext)
+    _precheck(path, ext, input_fps)
     scene = context.scene
     before = _snapshot()
     state = _scene_state(scene)
@@ -144,9 +145,13 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
         if action is None:
             raise InputError(path, "the file has no animation")
         f0, f1 = (int(round(x)) for x in action.frame_range)
+        if f1 - f0 + 1 < 2:
+            raise InputError(path, f"only {f1 - f0 + 1} frame(s); a take needs at least 2")
+        # The same bounds as the core readers, before a frame is evaluated.
+        rate = (check_rate(path, input_fps) if input_fps and input_fps > 0 else
+                check_rate(path, file_fps, what="the file's frame rate (set Input FPS to override it)"))
+        check_duration(path, (f1 - f0) / rate, what=f"the animation ({f1 - f0 + 1} frames at {rate:g} fps)")
         frames = np.arange(f0, f1 + 1)
-        if len(frames) < 2:
-            raise InputError(path, f"only {len(frames)} frame(s); a take needs at least 2")
         # Rest pose (world, Blender space): bone frames, size, and whether it is the SPEC rest pose.
         mw = np.array(arm.matrix_world)
         bones = arm.data.bones
@@ -183,7 +188,6 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
         world_m = bm.C.T @ world
         rest_m = bm.C.T @ rest_rot
         rot = bm.rig_rotations(world_m, rest_m, pts_m[:, 3], pts_m[:, 4], rest_ok)
-        rate = float(input_fps) if input_fps and input_fps > 0 else file_fps
         time = (frames - frames[0]) / rate
         meta = {"source_naming": naming}
         take = take_from_tracked(time, pts_m[:, :3], rot[:, 0], rot[:, 1], rot[:, 2], meta, path)
@@ -205,20 +209,17 @@ def load_any(context, path, input_fps=0.0, height=0.0, axis_forward='-Z', axis_u
     if ext not in FILE_TYPES:
         raise InputError(path, f"unsupported file type {ext or '(no extension)'!r} (expected "
                                f"{', '.join(FILE_TYPES)})")
-    if not os.path.exists(path):
-        raise InputError(path, "no such file")
-    if os.path.isdir(path):
-        raise InputError(path, "is a folder, not a take file")
+    # The core's rules (those of the command line): the frame rate and height
+    # ranges, regular files only, then ``check_take`` on whatever was read.
+    fps = check_rate(path, input_fps) if input_fps and input_fps > 0 else None
+    h = check_height(path, height) if height and height > 0 else None
+    regular_file(path, "a take file", missing="no such file")
     if ext in (".bvh", ".fbx"):
-        take = read_rig_take(context, path, ext, input_fps, axis_forward, axis_up, units)
+        take = check_take(read_rig_take(context, path, ext, fps or 0.0, axis_forward, axis_up, units), path)
     else:
-        take = load_input(path, input_fps=input_fps if input_fps and input_fps > 0 else None)
-    if height and height > 0:
-        take.meta["height_m"] = float(height)
-    if take.n_frames < 2:
-        raise InputError(path, f"only {take.n_frames} frame(s); a take needs at least 2")
-    if not take.valid.any(axis=1).any():
-        raise InputError(path, "no tracked samples: every device is lost on every row")
+        take = load_input(path, input_fps=fps)  # check_take included
+    if h is not None:
+        take.meta["height_m"] = h
     return take
 
 
@@ -368,11 +369,11 @@ def take_from_collection(context, coll):
     objs = device_objects(coll)
     missing = [DEVICE_OBJECT_NAMES[d] for d in DEVICES if d not in objs]
     if missing:
-        raise TakeError("take '{:s}' has no {:s} empty (objects carry a '{:s}' property)".format(
+        raise UserError("take '{:s}' has no {:s} empty (objects carry a '{:s}' property)".format(
             coll.name, " or ".join(missing), DEVICE_PROP))
     T = int(s.n_frames)
     if T < 2:
-        raise TakeError("take '{:s}' has {:d} frame(s); a take needs at least 2".format(coll.name, T))
+        raise UserError("take '{:s}' has {:d} frame(s); a take needs at least 2".format(coll.name, T))
     frames = s.frame_start + np.arange(T, dtype=np.float64)
     pos = np.empty((T, 3, 3))
     quats = np.empty((T, 3, 4))
@@ -385,7 +386,7 @@ def take_from_collection(context, coll):
         pos[lost, d] = np.nan
         quats[lost, d] = np.nan
     if not np.isfinite(pos).all(-1).any():
-        raise TakeError("take '{:s}' has no tracked samples".format(coll.name))
+        raise UserError("take '{:s}' has no tracked samples".format(coll.name))
     exact = stored_samples(coll, pos, quats)
     if exact is not None:
         pos, quats = exact

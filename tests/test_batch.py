@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
-from dancing_points_addon import batch, nets
+from dancing_points_addon import batch
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.bvh import load_bvh, write_bvh
 from dancing_points_addon.skeleton import JOINT_NAMES, Motion
@@ -537,12 +537,9 @@ for line in sys.stdin:
 
 
 def _fake_args(tmp_path, inputs, **kw):
-    models = tmp_path / "models"
-    models.mkdir(exist_ok=True)
-    for f in nets.MODEL_FILES.values():
-        (models / f).write_bytes(b"")
+    # (real models: the parent checks them once at start-up, nets.check_models)
     d = dict(inputs=[str(p) for p in inputs], output_dir=str(tmp_path / "out"), format="bvh", jobs=1,
-             render=False, overwrite=False, resume=False, report=None, models=str(models), threads=1,
+             render=False, overwrite=False, resume=False, report=None, models=MODELS, threads=1,
              input_fps=None, asf=None, height=None, no_foot_lock=False, no_hand_ik=False, no_progress=True)
     d.update(kw)
     return argparse.Namespace(**d)
@@ -696,10 +693,11 @@ def test_output_names_and_temps(tmp_path):
                                            "other"]
     assert batch.output_kinds("bvh", True) == [("bvh_leader", "_leader.bvh"), ("bvh_follower", "_follower.bvh"),
                                                ("mp4", ".mp4")]
-    assert batch.temp_path("/o/sub/take.blend") == "/o/sub/.take.part.blend"
+    assert batch.temp_path("/o/sub/take.blend", 123) == "/o/sub/.take.part-123.blend"  # unique per process
     tasks = batch.plan([(str(tmp_path / "t.csv"), "")], str(tmp_path), "bvh")
     assert tasks[0].outputs == [str(tmp_path / "t_leader.bvh"), str(tmp_path / "t_follower.bvh")]
-    assert tasks[0].temps == [str(tmp_path / ".t_leader.part.bvh"), str(tmp_path / ".t_follower.part.bvh")]
+    pid = os.getpid()
+    assert tasks[0].temps == [str(tmp_path / f".t_leader.part-{pid}.bvh"), str(tmp_path / f".t_follower.part-{pid}.bvh")]
     # existing outputs: failed / skipped (--resume) / replace (--overwrite; --resume over an incomplete set)
     (tmp_path / "t_leader.bvh").write_text("")
     args = ([(str(tmp_path / "t.csv"), "")], str(tmp_path), "bvh")

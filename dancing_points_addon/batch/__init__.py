@@ -4,17 +4,22 @@
 and, inside Blender, ``blender --background --command dancing_points convert ...``
 (``operators/batch_cli.py``) both take :func:`add_arguments` and run :func:`run`:
 
-* :mod:`.plan`: the input files, one output per take named after it, the
-  temporary names the workers write;
+* :mod:`.plan`: the input files, one output per take named after it (never
+  one of the inputs), the temporary names the workers write;
+* :mod:`.lock`: one batch at a time per output folder (a second one is refused);
 * :mod:`.scheduler`: the parent, running ``--jobs`` worker processes
   (:mod:`.worker`, talking :mod:`.messages`), committing finished outputs,
   stopping on Ctrl-C;
-* :mod:`.progress`: the progress bar (stderr) and a result line per file (stdout);
+* :mod:`.progress`: the progress bar (stderr) and a result line per file (stdout),
+  in the order the files finish (the report keeps the input order);
 * :mod:`.report`: the JSON report and the summary line;
 * :mod:`.options`: formats, exit statuses, the options a job carries.
 
-A bad file is reported and skipped, the rest go on; the exit status is 1 if any
-file failed. The package never imports ``bpy``: the Blender side hands its
+Before any work the command line is checked (inputs, the networks loaded once
+with :func:`~..nets.check_models`, the report path, the output folder's lock):
+a problem there is one line and exit status 2. Then a bad file is reported and
+skipped, the rest go on; the exit status is 1 if any file failed. ``--jobs`` is
+capped at the number of files, with a warning line when above the cores. The package never imports ``bpy``: the Blender side hands its
 converter to the worker loop (:func:`.worker.worker_main`).
 """
 from __future__ import annotations
@@ -25,21 +30,24 @@ import os
 import sys
 import time
 
-from ..argtypes import height_metres, positive_float, positive_int
+from ..argtypes import (EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, height_metres, positive_float,
+                        positive_int, printable, thread_count)
 from ..errors import InputError, one_line
-from .options import (BPY_FORMATS, BPY_INPUTS, CORE_INPUTS, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED,
-                      FORMATS, check_rigs, default_jobs, job_options, resolve_model_dir, synthesis_options)
-from .plan import (PART, discover, make_output_dirs, output_bases, output_kinds, plan, remove_empty_dirs, remove_temps,
-                   temp_leftovers, temp_path)
+from .options import (BPY_FORMATS, BPY_INPUTS, CORE_INPUTS, FORMATS, check_rigs, default_jobs, job_options,
+                      resolve_model_dir)
+from .lock import LOCK_NAME
+from .lock import acquire as acquire_lock
+from .plan import (PART, check_not_inputs, discover, make_output_dirs, output_bases, output_kinds, output_paths, plan,
+                   remove_empty_dirs, remove_stale_temps, remove_temps, stale_temps, temp_leftovers, temp_path)
 from .progress import Progress, eta, fmt_duration, result_line
-from .report import REPORT_NAME, build_report, summary_line, write_report
+from .report import REPORT_NAME, build_report, check_report_path, is_report, summary_line, write_report
 from .scheduler import Batch
-from .worker import worker_main, write_duet_files
 
 __all__ = ["add_arguments", "run",
-           "FORMATS", "BPY_FORMATS", "CORE_INPUTS", "BPY_INPUTS", "REPORT_NAME", "PART",
-           "discover", "output_bases", "output_kinds", "plan", "temp_path", "temp_leftovers", "remove_temps",
-           "Progress", "eta", "fmt_duration", "synthesis_options", "worker_main", "write_duet_files"]
+           "FORMATS", "BPY_FORMATS", "CORE_INPUTS", "BPY_INPUTS", "REPORT_NAME", "PART", "LOCK_NAME",
+           "discover", "output_bases", "output_kinds", "output_paths", "plan", "temp_path", "temp_leftovers",
+           "remove_temps", "stale_temps", "remove_stale_temps", "is_report",
+           "Progress", "eta", "fmt_duration"]
 
 
 def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> None:
@@ -56,18 +64,21 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
                         "NAME_leader.bvh + NAME_follower.bvh, blend = a scene with the baked duet, "
                         "fbx = the two skinned armatures with their animation")
     p.add_argument("-j", "--jobs", type=positive_int, default=None, metavar="N",
-                   help=f"worker processes (default: the number of cores, {default_jobs()} here)")
+                   help=f"worker processes (default: the number of cores, {default_jobs()} here; never more "
+                        f"than the files; a warning when more than the cores)")
     p.add_argument("--render", action="store_true",
                    help="also render a Workbench preview video NAME.mp4 (needs Blender's bpy)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing outputs (never an input), and a --report file that is not a report")
     p.add_argument("--resume", action="store_true",
                    help="skip the takes whose outputs already exist (e.g. after an interrupted run)")
     p.add_argument("--report", default=None, metavar="PATH",
-                   help=f"JSON report (default: OUT_DIR/{REPORT_NAME})")
+                   help=f"JSON report (default: OUT_DIR/{REPORT_NAME}); replaces an earlier report, never "
+                        f"an input; another existing file only with --overwrite")
     p.add_argument("--models", default=None, metavar="DIR",
                    help=f"folder with the ONNX models (default: ${MODEL_ENV}, else the bundled models/)")
-    p.add_argument("--threads", type=positive_int, default=1, metavar="N",
-                   help="onnxruntime threads per worker (default 1)")
+    p.add_argument("--threads", type=thread_count, default=1, metavar="N",
+                   help="onnxruntime threads per worker (default 1, at most 64)")
     p.add_argument("--input-fps", type=positive_float, default=None, metavar="F",
                    help="override every input's frame rate")
     p.add_argument("--asf", default=None, metavar="PATH",
@@ -88,8 +99,13 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
 def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
     """The batch conversion for parsed :func:`add_arguments` options; returns the
     exit status (0 all done, 1 a file failed, 2 bad options, 130/143 stopped).
-    Raises :class:`InputError` for a bad command line (no inputs, no models...).
+    Raises a :class:`UserError` (one line) for a bad command line, before any
+    work: no inputs, missing or damaged models (:func:`~..nets.check_models`), an
+    output or report that is an input, a report path that is not a report,
+    another batch writing into the same output folder (:mod:`.lock`).
     ``worker_cmd``: how to start a worker (default: :func:`.worker.worker_command`)."""
+    from ..nets import check_models
+
     out = out if out is not None else sys.stdout
     err = err if err is not None else sys.stderr
     t_start = time.perf_counter()
@@ -117,33 +133,49 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
     if args.asf and needs_bpy:
         raise InputError(args.asf, "--asf works with the npz and bvh formats only (without --render); "
                                    "put the ASF beside the AMC files instead")
+    report_path = os.path.abspath(os.path.expanduser(args.report)) if args.report else os.path.join(out_dir,
+                                                                                                   REPORT_NAME)
+    outputs = [o for outs in output_paths(entries, out_dir, fmt, args.render) for o in outs]
+    check_not_inputs(entries, outputs)
+    check_not_inputs(entries, [report_path], "report")
+    if report_path in outputs:
+        raise InputError(report_path, "--report: this path is one of the outputs; choose another path")
+    check_report_path(report_path, args.overwrite, explicit=bool(args.report))
+    check_models(model_dir, args.threads or 1)  # once, here: not every file against a damaged network
     try:
         os.makedirs(out_dir, exist_ok=True)
     except OSError as exc:
         raise InputError(args.output_dir, f"cannot create the output folder ({exc.strerror or exc})") from None
-    report_path = os.path.abspath(args.report) if args.report else os.path.join(out_dir, REPORT_NAME)
-    tasks = plan(entries, out_dir, fmt, args.render, args.overwrite, args.resume)
-    made = make_output_dirs(tasks)  # sub-folders made for the outputs: removed again if they stay empty
-    n_run = sum(t.status == "pending" for t in tasks)
-    prog = Progress(n_run, stream=err, out=out, enabled=not args.no_progress)
-    for t in tasks:  # decided before any work: report now
-        if t.status != "pending":
-            prog.result(result_line(t, out_dir))
-    batch = Batch(tasks, min(jobs, max(n_run, 1)), job_options(args, model_dir), fmt, worker_cmd, prog, out_dir)
-    outcome = batch.run()
-    remove_empty_dirs(made)
-    seconds = time.perf_counter() - t_start
-    report = build_report(tasks, fmt, out_dir, batch.jobs, model_dir, started, seconds, outcome, batch.fatal)
-    try:
-        write_report(report_path, report)
-    except InputError as exc:
-        print(f"error: cannot write the report: {one_line(exc)}", file=err)
-        report_path = None
-    print(summary_line(report, outcome, seconds, report_path), file=out, flush=True)
+    with acquire_lock(out_dir):  # one batch per output folder
+        tasks = plan(entries, out_dir, fmt, args.render, args.overwrite, args.resume)
+        remove_stale_temps(tasks)  # what a batch killed on the spot left beside these outputs
+        made = make_output_dirs(tasks)  # sub-folders made for the outputs: removed again if they stay empty
+        n_run = sum(t.status == "pending" for t in tasks)
+        n_workers = min(jobs, max(n_run, 1))  # never more workers than files
+        cores = default_jobs()
+        if n_workers > cores:
+            print(f"warning: --jobs {jobs}: {n_workers} worker processes on {cores} core{'s' if cores != 1 else ''} "
+                  f"share them (each file takes longer, and each worker loads the networks)", file=err,
+                  flush=True)
+        prog = Progress(n_run, stream=err, out=out, enabled=not args.no_progress)
+        for t in tasks:  # decided before any work: report now
+            if t.status != "pending":
+                prog.result(result_line(t, out_dir))
+        batch = Batch(tasks, n_workers, job_options(args, model_dir), fmt, worker_cmd, prog, out_dir)
+        outcome = batch.run()
+        remove_empty_dirs(made)
+        seconds = time.perf_counter() - t_start
+        report = build_report(tasks, fmt, out_dir, batch.jobs, model_dir, started, seconds, outcome, batch.fatal)
+        try:
+            write_report(report_path, report)
+        except InputError as exc:
+            print(printable(f"error: cannot write the report: {one_line(exc)}"), file=err)
+            report_path = None
+    print(printable(summary_line(report, outcome, seconds, report_path)), file=out, flush=True)
     if batch.fatal:
-        print(f"error: {batch.fatal}", file=err)
+        print(printable(f"error: {batch.fatal}"), file=err)
     if outcome != "done":
         print(f"error: {outcome}; no partial outputs were left; re-run with --resume to convert the rest",
               file=err)
         return EXIT_TERMINATED if outcome == "terminated" else EXIT_INTERRUPTED
-    return EXIT_FAILED if report["counts"]["failed"] else EXIT_OK
+    return EXIT_FAILURE if report["counts"]["failed"] else EXIT_OK

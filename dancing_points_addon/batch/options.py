@@ -17,7 +17,6 @@ BPY_FORMATS = ("blend", "fbx")  # (and --render) need Blender's bpy in the worke
 CORE_INPUTS = (".csv", ".bvh", ".amc")
 BPY_INPUTS = CORE_INPUTS + (".fbx",)
 RIG_TYPES = (".blend", ".glb", ".gltf", ".fbx")
-EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 130, 143
 
 
 def default_jobs() -> int:

@@ -8,16 +8,22 @@
   ``take.mp4``), in the output folder, under the input's sub-folder when it was
   found inside a folder. Two takes that would get the same name get their
   source extension appended (``take_csv.npz``, ``take_bvh.npz``).
-* Temporary files: a worker writes ``.NAME.part.EXT`` beside each output; the
-  parent renames them into place only once a take is complete
+* Temporary files: a worker writes ``.NAME.part-PID.EXT`` beside each output
+  (``PID``: the batch's own process, so that no two processes ever share one);
+  the parent renames them into place only once a take is complete
   (:mod:`.scheduler`), and never over an existing file unless ``--overwrite``;
-  with ``--resume`` the takes whose outputs all exist are skipped.
+  with ``--resume`` the takes whose outputs all exist are skipped. The
+  temporary files that a batch killed on the spot left beside this batch's
+  outputs are removed at its start (:func:`remove_stale_temps`).
+* Never over an input: an output (or the report) that is one of the inputs
+  is refused before any work (:func:`check_not_inputs`).
 """
 from __future__ import annotations
 
 import collections
 import contextlib
 import os
+import re
 import shutil
 
 from ..errors import InputError
@@ -85,12 +91,60 @@ def output_kinds(fmt: str, render: bool):
     return kinds + ([("mp4", ".mp4")] if render else [])
 
 
-def temp_path(final: str) -> str:
-    """The temporary name a worker writes before the rename: ``.NAME.part.EXT``
-    beside ``final`` (the real extension kept last, which some writers need)."""
+def temp_path(final: str, pid=None) -> str:
+    """The temporary name a worker writes before the rename: ``.NAME.part-PID.EXT``
+    beside ``final`` (``PID``: this process by default; the real extension kept
+    last, which some writers need)."""
     folder, name = os.path.split(final)
     stem, ext = os.path.splitext(name)
-    return os.path.join(folder, f".{stem}{PART}{ext}")
+    return os.path.join(folder, f".{stem}{PART}-{os.getpid() if pid is None else int(pid)}{ext}")
+
+
+_TEMP_NAME = re.compile(r"(\..*" + re.escape(PART) + r"-)(\d+)(.*)", re.DOTALL)
+
+
+def stale_temps(finals):
+    """The temporary files (and what their writers left, :func:`temp_leftovers`)
+    of the outputs ``finals`` whose batch process is no longer running, or is this
+    one (which has none while it does not run): what a batch killed on the spot
+    left. Each folder is listed once."""
+    from .lock import pid_alive
+
+    wanted = collections.defaultdict(dict)  # folder -> {".STEM.part-": {EXT}}
+    for final in finals:
+        folder, name = os.path.split(final)
+        stem, ext = os.path.splitext(name)
+        wanted[folder].setdefault(f".{stem}{PART}-", set()).add(ext)
+    found, alive = [], {}
+    for folder, prefixes in wanted.items():
+        try:
+            names = os.listdir(folder)
+        except OSError:
+            continue
+        for n in names:
+            m = _TEMP_NAME.fullmatch(n)
+            if not m or m.group(1) not in prefixes:
+                continue
+            pid, tail = int(m.group(2)), m.group(3)
+            if not any(tail in (ext, ext + "@", ext + ".d") for ext in prefixes[m.group(1)]):
+                continue
+            if pid not in alive:
+                alive[pid] = pid != os.getpid() and pid_alive(pid)
+            if not alive[pid]:
+                found.append(os.path.join(folder, n))
+    return sorted(found)
+
+
+def remove_stale_temps(tasks) -> list:
+    """Remove :func:`stale_temps` of the tasks' outputs; returns what was removed."""
+    stale = stale_temps([o for t in tasks for o in t.outputs])
+    for p in stale:
+        if os.path.isdir(p) and not os.path.islink(p):
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                os.unlink(p)
+    return stale
 
 
 def temp_leftovers(tmp: str):
@@ -140,13 +194,37 @@ class Task:
                 "frames": self.frames, "seconds": None if self.seconds is None else round(self.seconds, 3)}
 
 
+def output_paths(entries, out_dir, fmt, render=False):
+    """The output paths of each of ``entries`` (see :func:`discover`), in kind order."""
+    kinds = output_kinds(fmt, render)
+    return [[os.path.join(out_dir, base + suffix) for _, suffix in kinds] for base in output_bases(entries)]
+
+
+def check_not_inputs(entries, paths, what="output") -> None:
+    """An :class:`InputError` when one of ``paths`` (outputs, the report) is one of
+    the input files of ``entries`` (the same file: also a hard or symbolic link)."""
+    ids = {}
+    for p, _ in entries:
+        with contextlib.suppress(OSError):
+            st = os.stat(p)
+            ids[(st.st_dev, st.st_ino)] = p
+    for p in paths:
+        try:
+            st = os.stat(p)
+        except OSError:
+            continue  # (an output that does not exist is no input)
+        inp = ids.get((st.st_dev, st.st_ino))
+        if inp is not None:
+            raise InputError(p, f"this {what} is the input {inp}: it would be overwritten; choose another "
+                                f"{'output folder (-o)' if what == 'output' else 'path'}")
+
+
 def plan(entries, out_dir, fmt, render=False, overwrite=False, resume=False):
     """Tasks for ``entries`` (see :func:`discover`); outputs that already exist make a
     task ``skipped`` (``resume``) or ``failed`` (neither ``resume`` nor ``overwrite``)."""
     kinds = output_kinds(fmt, render)
     tasks = []
-    for i, ((path, _), base) in enumerate(zip(entries, output_bases(entries))):
-        outs = [os.path.join(out_dir, base + suffix) for _, suffix in kinds]
+    for i, ((path, _), outs) in enumerate(zip(entries, output_paths(entries, out_dir, fmt, render))):
         t = Task(i, path, outs, [k for k, _ in kinds])
         exist = [o for o in outs if os.path.lexists(o)]
         if resume and exist and len(exist) == len(outs):

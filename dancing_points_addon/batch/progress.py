@@ -1,6 +1,9 @@
 """What the user sees while a batch runs: a progress bar on stderr (per-file and
 overall progress, ETA; ``\\r`` updates on a terminal, plain lines otherwise) and
-one result line per file on stdout (:func:`result_line`).
+one result line per file on stdout (:func:`result_line`), in the order the files
+finish (first those decided before any work: skipped, output exists), not the
+input order (the report keeps the input order). File names are printed with
+their control characters escaped (:func:`~..argtypes.printable`): one line each.
 """
 from __future__ import annotations
 
@@ -9,6 +12,8 @@ import os
 import shutil
 import sys
 import time
+
+from ..argtypes import printable
 
 
 def fmt_duration(seconds) -> str:
@@ -64,7 +69,7 @@ class Progress:
         elapsed = time.perf_counter() - self.t0
         fill = int(round(self.WIDTH * f))
         bar = "#" * fill + "-" * (self.WIDTH - fill)
-        run = ", ".join(f"{n} {100 * x:.0f}%" for n, x in self.running)
+        run = ", ".join(f"{printable(n)} {100 * x:.0f}%" for n, x in self.running)
         left = eta(elapsed, f) if self.done < self.total else 0.0
         line = (f"[{bar}] {self.done}/{self.total} files {100 * f:3.0f}% "
                 f"elapsed {fmt_duration(elapsed)} ETA {fmt_duration(left)}")
@@ -108,7 +113,8 @@ class Progress:
 
 
 def result_line(task, out_dir=None) -> str:
-    """The stdout line of a task that is done (ok, failed, skipped, interrupted)."""
+    """The stdout line of a task that is done (ok, failed, skipped, interrupted),
+    control characters escaped."""
 
     def rel(p):
         if out_dir:
@@ -118,7 +124,9 @@ def result_line(task, out_dir=None) -> str:
 
     if task.status == "ok":
         outs = ", ".join(rel(o) for o in task.outputs)
-        return f"ok      {task.input} -> {outs} ({task.frames} frames, {task.seconds:.2f} s)"
-    if task.status == "skipped":
-        return f"skipped {task.input} ({task.error})"
-    return f"{task.status.upper():7s} {task.input}: {task.error}"
+        line = f"ok      {task.input} -> {outs} ({task.frames} frames, {task.seconds:.2f} s)"
+    elif task.status == "skipped":
+        line = f"skipped {task.input} ({task.error})"
+    else:
+        line = f"{task.status.upper():7s} {task.input}: {task.error}"
+    return printable(line)  # a file name with a newline or escape codes stays on its line

@@ -31,7 +31,8 @@ from . import messages
 from .options import BPY_FORMATS
 from .plan import remove_temps
 from .progress import result_line
-from .worker import THREAD_ENV, worker_command
+from ..argtypes import SINGLE_THREAD_ENV
+from .worker import worker_command
 
 
 class WorkerProcess:
@@ -102,34 +103,18 @@ class WorkerProcess:
 
 
 def commit(task) -> None:
-    """Rename a finished task's temporary files onto its outputs (all or none new)."""
-    done = []
+    """Rename a finished task's temporary files onto its outputs, all or none new
+    (:func:`~..formats.files.install_all`: never over an existing file unless the
+    task may replace it; on a failure the outputs are as they were)."""
+    from ..formats.files import install_all
+
     try:
-        for tmp, final in zip(task.temps, task.outputs):
-            if task.replace:
-                os.replace(tmp, final)
-            else:
-                try:
-                    os.link(tmp, final)  # fails if ``final`` appeared meanwhile: never overwrite
-                except FileExistsError:
-                    raise InputError(final, "output exists (use --overwrite to replace it or "
-                                            "--resume to skip this take)") from None
-                except OSError:  # no hard links on this file system
-                    if os.path.lexists(final):
-                        raise InputError(final, "output exists (use --overwrite to replace it or "
-                                                "--resume to skip this take)") from None
-                    os.replace(tmp, final)
-                else:
-                    os.unlink(tmp)
-            done.append(final)
+        install_all(list(zip(task.temps, task.outputs)), replace=task.replace)
+    except FileExistsError as exc:
+        raise InputError(exc.filename, "output exists (use --overwrite to replace it or --resume to skip "
+                                       "this take)") from None
+    finally:
         remove_temps(task.temps)  # whatever else a writer left beside them
-    except BaseException:
-        if not task.replace:
-            for p in done:
-                with contextlib.suppress(OSError):
-                    os.unlink(p)
-        remove_temps(task.temps)
-        raise
 
 
 class Batch:
@@ -146,7 +131,7 @@ class Batch:
         self.progress = progress
         self.out_dir = out_dir
         self.env = dict(os.environ if env is None else env)
-        for k in THREAD_ENV:
+        for k in SINGLE_THREAD_ENV:
             self.env[k] = "1"
         self.stop_signal = None
         self.fatal = None

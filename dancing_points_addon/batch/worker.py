@@ -24,11 +24,10 @@ import time
 
 from ..errors import error_message
 from . import messages
-from .options import EXIT_FAILED, EXIT_TERMINATED, synthesis_options
+from ..argtypes import EXIT_FAILURE, EXIT_TERMINATED, SINGLE_THREAD_ENV
+from .options import synthesis_options
 from .plan import remove_temps
 
-THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-              "VECLIB_MAXIMUM_THREADS")
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the checkout / extension folder
 # The entry of a worker in a ``bpy``-module process: a standalone script on the
 # Blender side, run as a program (never imported by the core).
@@ -52,7 +51,7 @@ class CoreConverter:
     """npz / bvh through the bpy-free core; the networks are loaded once."""
 
     def __call__(self, job, progress):
-        from ..formats.take import load_input
+        from ..formats.inputs import load_input
         from ..runtime import Synthesizer
 
         o = job["options"]
@@ -66,12 +65,13 @@ class CoreConverter:
 
 def write_duet_files(temps: dict, duet) -> None:
     """Write the core formats among ``temps`` (``{kind: path}``): ``npz``,
-    ``bvh_leader``, ``bvh_follower``. Plain writes (the paths are temporary)."""
-    import numpy as np
+    ``bvh_leader``, ``bvh_follower``. Plain writes (the paths are temporary; the
+    worker removes them when a write fails)."""
+    from ..formats.files import write_npz
 
     if "npz" in temps:  # (not runtime.save_npz: its own temporary file would escape a killed worker's cleanup)
         with open(temps["npz"], "wb") as f:
-            np.savez_compressed(f, **duet.arrays())
+            write_npz(f, duet.arrays())  # (a failed write leaves no zip writer behind to complain)
             f.flush()
             os.fsync(f.fileno())
     if "bvh_leader" in temps or "bvh_follower" in temps:
@@ -104,7 +104,7 @@ def worker_main(bpy_converter=None) -> int:
 
     with contextlib.suppress(ValueError, AttributeError):
         signal.signal(signal.SIGTERM, on_term)
-    for k in THREAD_ENV:
+    for k in SINGLE_THREAD_ENV:
         os.environ.setdefault(k, "1")
     # Our channel is the original stdout; anything else printed goes to stderr.
     sys.stdout.flush()
@@ -128,7 +128,7 @@ def worker_main(bpy_converter=None) -> int:
     except _Terminated:
         return EXIT_TERMINATED
     except messages.Orphaned:
-        return EXIT_FAILED
+        return EXIT_FAILURE
 
 
 def _run_job(job, chan, core, bpy_converter):

@@ -1,4 +1,5 @@
-"""File formats: the SPEC §3 take (``take``), BVH (``bvh_parse`` reads the text,
-``bvh`` the kinematics, tracked points and writer), CMU ASF/AMC (``asf_amc``),
-meshopt-compressed glTF (``gltf_meshopt``), bone naming (``naming``) and
-atomic output files (``files``)."""
+"""File formats: the SPEC §3 take (``take``), any input as a take and the rules
+every take meets (``inputs``), the bounds on inputs (``limits``), BVH
+(``bvh_parse`` reads the text, ``bvh`` the kinematics, tracked points and
+writer), CMU ASF/AMC (``asf_amc``), meshopt-compressed glTF (``gltf_meshopt``),
+bone naming (``naming``) and atomic output files (``files``)."""

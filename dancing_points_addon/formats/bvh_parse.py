@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError, read_text
+from .limits import check_duration, check_rate
 from .naming import bone_key
 
 _CHANNELS = {
@@ -76,7 +77,9 @@ def _read_lines(path):
 
 
 def _snap_fps(frame_time: float) -> float:
-    fps = 1.0 / frame_time
+    fps = 1.0 / frame_time if frame_time > 1e-300 else float("inf")
+    if not np.isfinite(fps) or fps > 1e12:
+        return fps
     r = round(fps)
     if r >= 1 and abs(frame_time - 1.0 / r) <= 5.01e-7:
         return float(r)
@@ -137,14 +140,18 @@ def parse_bvh(path, input_fps: float | None = None) -> BvhData:
     Rejects with :class:`InputError` (file and line): a missing HIERARCHY or
     MOTION section, more than one ROOT, unbalanced braces, malformed OFFSET or
     CHANNELS, a missing or malformed ``Frames:`` / ``Frame Time:`` line, a
-    frame time that is not positive (unless ``input_fps`` is given), a frame
+    frame time that is not positive or not a rate within
+    ``limits.INPUT_FPS_RANGE`` (unless ``input_fps`` is given, which must be), a
+    motion longer than ``limits.MAX_DURATION_S`` (checked before its rows are
+    read), a non-regular file (FIFO, device), a frame
     row with the wrong number of values, non-numeric or non-finite values,
     fewer frame rows than ``Frames:`` declares. More rows than declared are
     accepted (all are used) with a note in ``BvhData.warnings``.
     """
+
     path = str(path)
-    if input_fps is not None and not (np.isfinite(input_fps) and input_fps > 0):
-        raise InputError(path, f"input frame rate must be positive, got {input_fps}")
+    if input_fps is not None:
+        input_fps = check_rate(path, input_fps)
     lines = _read_lines(path)
     tk = _Tokens(path, lines)
 
@@ -328,9 +335,17 @@ def parse_bvh(path, input_fps: float | None = None) -> BvhData:
         raise InputError(path, f"non-numeric frame time {m.group(1)!r}", ft_line) from None
     if input_fps is not None:
         frame_time = 1.0 / float(input_fps)
+        dur_line = frames_line
     elif not np.isfinite(frame_time) or frame_time <= 0:
         raise InputError(path, f"frame time must be positive, got {m.group(1)} (override with --input-fps)",
                          ft_line)
+    else:
+        check_rate(path, _snap_fps(frame_time), ft_line,
+                   f"frame rate (Frame Time {m.group(1)} s; override with --input-fps)")
+        dur_line = ft_line
+    # Before reading the rows: the declared frames must fit the maximum duration.
+    check_duration(path, (n_declared - 1) * frame_time, dur_line,
+                   f"the motion ({n_declared} frames of {frame_time:g} s)")
 
     n_ch = sum(len(c) for c in channels)
     row_lines, tokens = [], []
@@ -349,6 +364,8 @@ def parse_bvh(path, input_fps: float | None = None) -> BvhData:
         raise InputError(path, f"Frames: declares {n_declared} frames but only {n_rows} frame rows follow "
                          "(truncated file?)", frames_line)
     if n_rows > n_declared:
+        check_duration(path, (n_rows - 1) * frame_time, frames_line,
+                       f"the motion ({n_rows} frame rows of {frame_time:g} s)")
         warnings.append(f"Frames: declares {n_declared} frames but {n_rows} rows follow; all rows are used")
     try:
         values = np.array(tokens, dtype=np.float64).reshape(n_rows, n_ch)

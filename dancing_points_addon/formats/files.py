@@ -1,7 +1,12 @@
 """Writing output files atomically: a temporary file beside the output, renamed
 onto it only when complete. Every writer of the core goes through
-:func:`atomic_output`, so a failed or interrupted write never leaves a
-half-written file and never replaces an existing one.
+:func:`atomic_output` (one file) or :func:`atomic_outputs` (files that belong
+together, e.g. a duet's two BVH files), so a failed or interrupted write never
+leaves a half-written file and never replaces an existing one.
+
+Also here: :func:`install_all` (rename finished temporaries onto their outputs,
+all or none; the batch commits through it), :func:`write_npz` (an ``.npz``
+writer that leaves nothing behind when the write fails) and :func:`same_file`.
 """
 from __future__ import annotations
 
@@ -12,6 +17,29 @@ import tempfile
 from ..errors import InputError
 
 
+def _check_target(path) -> str:
+    path = os.fspath(path)
+    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+        raise InputError(path, "output folder does not exist")
+    if os.path.isdir(path):
+        raise InputError(path, "output path is a folder")
+    return path
+
+
+def _temp_for(path) -> tuple:
+    """``(fd, name)`` of a new hidden temporary file beside ``path``."""
+    folder = os.path.dirname(os.path.abspath(path))
+    try:
+        return tempfile.mkstemp(dir=folder, prefix="." + os.path.basename(path) + ".", suffix=".part")
+    except OSError as exc:
+        raise InputError(path, f"cannot write output ({exc.strerror or exc})") from None
+
+
+def _unlink(path) -> None:
+    with contextlib.suppress(OSError):
+        os.unlink(path)
+
+
 @contextlib.contextmanager
 def atomic_output(path, mode="w", **kwargs):
     """Open a temporary file beside ``path`` and move it onto ``path`` on success.
@@ -19,17 +47,8 @@ def atomic_output(path, mode="w", **kwargs):
     On any error the temporary file is removed and ``path`` is left untouched.
     OS errors (missing folder, no permission) become :class:`InputError`.
     """
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise InputError(path, "output folder does not exist")
-    if os.path.isdir(path):
-        raise InputError(path, "output path is a folder")
-    try:
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix="." + os.path.basename(path) + ".",
-                                   suffix=".part")
-    except OSError as exc:
-        raise InputError(path, f"cannot write output ({exc.strerror or exc})") from None
+    path = _check_target(path)
+    fd, tmp = _temp_for(path)
     try:
         with os.fdopen(fd, mode, **kwargs) as f:
             yield f
@@ -38,11 +57,171 @@ def atomic_output(path, mode="w", **kwargs):
         os.chmod(tmp, new_file_mode(path))  # mkstemp makes 0600 files
         os.replace(tmp, path)
     except BaseException as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+        _unlink(tmp)
         if isinstance(exc, OSError):
             raise InputError(path, f"cannot write output ({exc.strerror or exc})") from None
         raise
+
+
+def atomic_outputs(writers, mode="w", **kwargs) -> None:
+    """Write several files that belong together, all or none: ``writers`` is a
+    list of ``(path, write)``, ``write(f)`` writing one file's contents to the
+    open file ``f``. Each is written to a temporary file beside its path; only
+    when every one is complete are they renamed into place (:func:`install_all`).
+    On any error (a full disk, Ctrl-C) the temporary files are removed and no
+    existing file is replaced; an OS error becomes an :class:`InputError` naming
+    the file whose write failed."""
+    paths = [_check_target(p) for p, _ in writers]
+    temps = []
+    try:
+        for path, (_, write) in zip(paths, writers):
+            fd, tmp = _temp_for(path)
+            temps.append(tmp)
+            try:
+                with os.fdopen(fd, mode, **kwargs) as f:
+                    write(f)
+                    f.flush()
+                    os.fsync(f.fileno())
+                os.chmod(tmp, new_file_mode(path))
+            except OSError as exc:
+                raise InputError(path, f"cannot write output ({exc.strerror or exc})") from None
+        try:
+            install_all(list(zip(temps, paths)))
+        except OSError as exc:
+            raise InputError(getattr(exc, "filename", None) or paths[0],
+                             f"cannot write output ({exc.strerror or exc})") from None
+    finally:
+        for tmp in temps:  # (gone already after a successful install)
+            _unlink(tmp)
+
+
+def install_all(moves, replace=True) -> None:
+    """Rename each finished temporary file onto its final path (``moves``: a list
+    of ``(tmp, final)`` in one file system), all or none: when one rename fails
+    the files renamed before it are put back as they were (an existing file from
+    a hard-link backup taken first; a new one removed). ``replace=False``: never
+    over an existing file (:class:`FileExistsError` naming it, also when it
+    appears meanwhile). The temporary files of a failed call are the caller's."""
+    done = []  # (final, backup or None, replaced an existing file)
+    try:
+        for tmp, final in moves:
+            if not replace:
+                try:
+                    os.link(tmp, final)  # fails if ``final`` exists: never overwrite
+                except FileExistsError:
+                    raise FileExistsError(17, "output exists", final) from None
+                except OSError:  # no hard links on this file system
+                    if os.path.lexists(final):
+                        raise FileExistsError(17, "output exists", final) from None
+                    os.replace(tmp, final)
+                else:
+                    os.unlink(tmp)
+                done.append((final, None, False))
+                continue
+            existed = os.path.lexists(final)
+            backup = _backup(final) if existed and len(moves) > 1 else None
+            try:
+                os.replace(tmp, final)
+            except BaseException:
+                if backup:
+                    _unlink(backup)
+                raise
+            done.append((final, backup, existed))
+    except BaseException:
+        for final, backup, existed in reversed(done):
+            with contextlib.suppress(OSError):
+                if backup:
+                    os.replace(backup, final)
+                elif not existed:
+                    os.unlink(final)
+        raise
+    for _, backup, _ in done:
+        if backup:
+            _unlink(backup)
+
+
+def _backup(path):
+    """A hard link to ``path`` under a hidden temporary name (None when the file
+    system has no hard links)."""
+    folder, name = os.path.split(os.path.abspath(path))
+    for _ in range(100):
+        cand = os.path.join(folder, f".{name}.{os.urandom(4).hex()}.old")
+        try:
+            os.link(path, cand)
+            return cand
+        except FileExistsError:
+            continue
+        except OSError:
+            return None
+    return None
+
+
+class _Disarmable:
+    """A binary file as :func:`numpy.savez_compressed` sees it (``read``,
+    ``write``, ``tell``, ``seek``, ``flush`` pass through); after :meth:`disarm`
+    it is a sink that only counts (writes go nowhere, positions stay
+    consistent), so the zip writer that a failed write leaves unclosed can finish
+    when it is collected without touching the file or printing a traceback."""
+
+    def __init__(self, f):
+        self._f = f
+        self.name = getattr(f, "name", None)
+        self._pos = self._end = 0
+
+    def read(self, *args):  # (numpy takes an object without ``read`` for a path)
+        return self._f.read(*args) if self._f is not None else b""
+
+    def write(self, data):
+        if self._f is not None:
+            return self._f.write(data)
+        self._pos += len(data)
+        self._end = max(self._end, self._pos)
+        return len(data)
+
+    def tell(self):
+        return self._f.tell() if self._f is not None else self._pos
+
+    def seek(self, offset, whence=0):
+        if self._f is not None:
+            return self._f.seek(offset, whence)
+        self._pos = max(0, offset + (0, self._pos, self._end)[whence])
+        return self._pos
+
+    def flush(self):
+        if self._f is not None:
+            self._f.flush()
+
+    def disarm(self):
+        if self._f is None:
+            return
+        try:
+            self._pos = self._end = max(0, self._f.tell())
+        except (OSError, ValueError):
+            pass
+        self._f = None
+
+
+def write_npz(f, arrays) -> None:
+    """``numpy.savez_compressed`` of ``arrays`` (a dict) into the open binary file
+    ``f``, the same bytes; when the write fails (a full disk, Ctrl-C) the
+    exception propagates and nothing more is written to ``f`` afterwards."""
+    import numpy as np
+
+    out = _Disarmable(f)
+    try:
+        np.savez_compressed(out, **arrays)
+    except BaseException:
+        out.disarm()
+        raise
+
+
+def same_file(a, b) -> bool:
+    """Whether the paths ``a`` and ``b`` are one file (the same inode when both
+    exist: hard links, symbolic links; else the same real path)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.normcase(os.path.realpath(a)) == os.path.normcase(os.path.realpath(b))
 
 
 def new_file_mode(path) -> int:

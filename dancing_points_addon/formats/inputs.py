@@ -1,0 +1,154 @@
+"""Any input as a take: the SPEC §3 take file, a CMU AMC or a BVH motion
+(:func:`load_input`), and the one set of rules every take must meet before it
+is synthesised (:func:`check_take`), wherever it came from: the command line,
+the batch and the Blender import all apply them."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ..errors import InputError, regular_file
+from .limits import MAX_ABS_TIME_S, MAX_GAP_S, check_duration, check_height, check_rate
+from ..resample import NET_FPS, resample_plan, tracked_after_resampling
+from .take import DEVICES, MAX_DISTANCE_M, Take, read_take, take_from_motion, take_from_tracked
+
+def check_take(take: Take, path=None) -> Take:
+    """The rules every input must meet before it is resampled and synthesised,
+    wherever it came from (the command line, batch and the Blender import all
+    apply them, through :func:`load_input` or directly):
+
+    * at least 2 rows, finite and strictly increasing times within
+      ±:data:`MAX_ABS_TIME_S` s, no gap over :data:`MAX_GAP_S` s, at most
+      :data:`MAX_DURATION_S` s from first to last row;
+    * no position farther than :data:`MAX_DISTANCE_M` from the origin;
+    * at least two frames at the networks' 30 Hz (a duration of 1/30 s);
+    * some device tracked on some 30 Hz frame (not every device lost on every row).
+
+    Returns ``take``; raises :class:`InputError` naming ``path`` (default
+    ``take.source``).
+    """
+    path = path if path is not None else (take.source or "<take>")
+    n = take.n_frames
+    if n < 2:
+        raise InputError(path, f"only {n} frame(s); a take needs at least 2")
+    time = np.asarray(take.time, dtype=np.float64)
+    with np.errstate(all="ignore"):
+        if not np.isfinite(time).all():
+            raise InputError(path, "time values must be finite")
+        big = np.abs(time) > MAX_ABS_TIME_S
+        if big.any():
+            r = int(np.flatnonzero(big)[0])
+            raise InputError(path, f"time {time[r]:.6g} s of frame {r + 1} is out of range (more than "
+                                   f"{MAX_ABS_TIME_S:g} s from 0; time is in seconds)")
+        dt = np.diff(time)
+        if not (dt > 0).all():
+            r = int(np.flatnonzero(~(dt > 0))[0])
+            raise InputError(path, f"time must increase strictly (frame {r + 2})")
+        if dt.max() > MAX_GAP_S:
+            r = int(np.argmax(dt))
+            raise InputError(path, f"gap of {dt[r]:.6g} s between frames {r + 1} and {r + 2} "
+                                   f"(more than {MAX_GAP_S:g} s; split the take there)")
+    check_duration(path, float(time[-1] - time[0]))
+    with np.errstate(all="ignore"):
+        far = np.linalg.norm(np.asarray(take.positions, dtype=np.float64), axis=-1) > MAX_DISTANCE_M
+    if far.any():
+        r, d = (int(x) for x in np.argwhere(far)[0])
+        raise InputError(path, f"{DEVICES[d]} position of frame {r + 1} is more than {MAX_DISTANCE_M:g} m "
+                               f"from the origin")
+    valid = take.valid
+    if not valid.any():
+        raise InputError(path, "no tracked samples: every device is lost on every row")
+    _, i, a = resample_plan(time, NET_FPS)
+    if len(i) < 2:
+        raise InputError(path, f"too short: {float(time[-1] - time[0]):.4g} s gives {len(i)} frame at "
+                               f"{NET_FPS:g} Hz; a take needs at least 2 (1/{NET_FPS:g} s)")
+    if not tracked_after_resampling(valid, i, a).any():
+        raise InputError(path, f"no tracked samples at {NET_FPS:g} Hz: no device is tracked on any "
+                               f"frame of the resampled take")
+    return take
+
+
+INPUT_TYPES = (".csv", ".amc", ".bvh")
+
+
+def load_input(path, asf=None, input_fps=None, height=None) -> Take:
+    """Any supported input as a take at its source rate.
+
+    * ``.csv`` take file (SPEC §3). ``input_fps`` replaces the time column by
+      ``t0 + k / input_fps`` (``t0`` the first row's time): the rows are taken
+      as regular samples at that rate.
+    * ``.amc`` CMU motion (ASF beside it or ``asf``); ``input_fps`` overrides
+      the default rate (60 Hz for subjects 60/61, else 120 Hz).
+    * ``.bvh`` motion; ``input_fps`` overrides its Frame Time.
+
+    ``height`` (metres, within :data:`HEIGHT_RANGE_M`) is stored as
+    ``meta['height_m']``; ``input_fps`` must be within :data:`INPUT_FPS_RANGE`.
+    Only regular files are read (not a FIFO or device). The result passes
+    :func:`check_take`. Anything wrong with the input is an :class:`InputError`
+    (checked before anything the size of the take's duration is allocated),
+    including unexpected failures of a parser on a malformed file.
+    """
+    path = os.fspath(path)
+    if input_fps is not None:
+        input_fps = check_rate(path, input_fps)
+    if height is not None:
+        height = check_height(path, height)
+    regular_file(path, "an input file", missing="no such file")
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in INPUT_TYPES:
+        raise InputError(path, f"unsupported input type {ext or '(no extension)'!r} "
+                               f"(expected {', '.join(INPUT_TYPES)})")
+    try:
+        with np.errstate(all="ignore"):  # overflows are checked for and reported, never warned
+            if ext == ".csv":
+                take = read_take(path)
+                if input_fps is not None:
+                    check_duration(path, (take.n_frames - 1) / input_fps,
+                                   what=f"the take ({take.n_frames} rows at {input_fps:g} Hz)")
+                    take.time = take.time[0] + np.arange(take.n_frames) / input_fps
+            elif ext == ".amc":
+                if asf is not None:
+                    regular_file(os.fspath(asf), "an ASF file", missing="no such ASF file")
+                from .asf_amc import load_amc
+                take = _checked_motion_take(path, take_from_motion(load_amc(path, asf, fps=input_fps)))
+            else:
+                take = _checked_motion_take(path, _take_from_bvh(path, input_fps))
+    except InputError:
+        raise
+    except MemoryError:
+        raise InputError(path, "file too large to load") from None
+    except Exception as exc:  # a parser tripped over a malformed file
+        raise InputError(path, f"cannot read {ext[1:].upper()} file "
+                               f"({type(exc).__name__}: {exc})") from None
+    if height is not None:
+        take.meta["height_m"] = height
+    take.source = path
+    return check_take(take, path)
+
+
+def _checked_motion_take(path, take: Take) -> Take:
+    """A take computed from a full-body motion (BVH, AMC): every value finite
+    and every point within :data:`MAX_DISTANCE_M` (what :func:`read_take`
+    accepts, so ``extract`` never writes a take it would reject)."""
+    with np.errstate(all="ignore"):
+        bad = ~(np.isfinite(take.positions).all(-1) & np.isfinite(take.quats).all(-1))
+        bad |= np.linalg.norm(take.positions, axis=-1) > MAX_DISTANCE_M
+    if bad.any():
+        r, d = (int(x) for x in np.argwhere(bad)[0])
+        raise InputError(path, f"{DEVICES[d]} point of frame {r + 1} is out of range (more than "
+                               f"{MAX_DISTANCE_M:g} m from the origin, or not a finite number)")
+    return take
+
+
+def _take_from_bvh(path, input_fps=None) -> Take:
+    from . import bvh
+
+    data = bvh.parse_bvh(path, input_fps=input_fps)
+    tp = bvh.tracked_points(data)
+    positions = np.asarray(tp.positions, dtype=np.float64)
+    rotations = np.asarray(tp.rotations, dtype=np.float64)
+    # tp.fps is 1 / Frame Time, snapped to a whole rate when the file rounded it.
+    time = np.arange(positions.shape[0]) / float(tp.fps)
+    return take_from_tracked(time, positions, rotations[:, 0], rotations[:, 1], rotations[:, 2],
+                             {}, path)
