@@ -103,18 +103,6 @@ def fill_gaps(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return values[idx]
 
 
-# --------------------------------------------------------------------------- rig reading
-
-def unit_scale_for_height(height: float, candidates=None, typical: float = 1.7) -> float:
-    """Factor to metres for a rig whose rest height is ``height`` in its own units:
-    the candidate unit that makes it closest (in log) to a ``typical`` person."""
-    if candidates is None:
-        candidates = (1.0, 0.0254 / 0.45, 0.0254, 0.01, 0.001)
-    if not (np.isfinite(height) and height > 0):
-        return 1.0
-    return float(min(candidates, key=lambda s: abs(np.log(height * s / typical))))
-
-
 # --------------------------------------------------------------------------- skeleton
 
 def armature_rest(bone_vectors: np.ndarray, root_length: float = ROOT_BONE_LENGTH):

@@ -37,12 +37,14 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 from bpy_extras.io_utils import ImportHelper, axis_conversion, orientation_helper
 
 from ..dancing_points_addon import blender_math as bm
-from ..dancing_points_addon.errors import InputError, UserError, error_message, regular_file
+from ..dancing_points_addon.errors import InputError, UserError, error_message
+from ..dancing_points_addon.formats.files import regular_file
 from ..dancing_points_addon.resample import resample_take
 from ..dancing_points_addon.formats.naming import rig_side_bones, rig_tracked_bones
 from ..dancing_points_addon.formats.inputs import check_take, load_input
 from ..dancing_points_addon.formats.limits import check_duration, check_height, check_rate
 from ..dancing_points_addon.formats.take import Take, take_from_tracked
+from ..dancing_points_addon.formats.units import unit_scale_for_height
 from . import compat
 from .props import (DEVICE_OBJECT_NAMES, DEVICE_PROP, DEVICES, KIND_TAKE, TRACKED_PROP, device_objects)
 
@@ -163,7 +165,7 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
         ends = np.array([[*bones[b].head_local, 1.0] for b in bones.keys()]
                         + [[*bones[b].tail_local, 1.0] for b in bones.keys()]) @ mw.T
         height = rest_point(point_bones[0])[2] - ends[:, 2].min()
-        scale = bm.unit_scale_for_height(height) if units == 'AUTO' else 1.0
+        scale = unit_scale_for_height(height) if units == 'AUTO' else 1.0
         rest_ok = side_bones is not None and bm.rest_faces_spec(
             bm.to_motion(rest_point(side_bones[0])), bm.to_motion(rest_point(side_bones[1])),
             bm.to_motion(rest_point(point_bones[0])))

@@ -18,7 +18,8 @@ import pytest
 
 from conftest import MODELS, SALSA
 from helpers import assert_bad_input, good_lines, irregular_take, row, run_cli, write_lines
-from dancing_points_addon.errors import InputError, read_text
+from dancing_points_addon.errors import InputError
+from dancing_points_addon.formats.files import read_text
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.bvh import parse_bvh, write_bvh
 from dancing_points_addon.formats.limits import MAX_DURATION_S

@@ -2,4 +2,5 @@
 every take meets (``inputs``), the bounds on inputs (``limits``), BVH
 (``bvh_parse`` reads the text, ``bvh`` the kinematics, tracked points and
 writer), CMU ASF/AMC (``asf_amc``), meshopt-compressed glTF (``gltf_meshopt``),
-bone naming (``naming``) and atomic output files (``files``)."""
+bone naming (``naming``), length units (``units``) and files (``files``: safe
+reading and atomic writing)."""

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InputError, read_text
+from ..errors import InputError
+from .files import read_text
 from ..rotations import euler_to_matrix
 from ..skeleton import JOINT_NAMES, Motion, forward_kinematics
 

@@ -57,20 +57,9 @@ from ..errors import InputError
 from ..rotations import euler_to_matrix, matrix_to_euler
 from .bvh_parse import BvhData, parse_bvh
 from .files import atomic_output
+from .units import UNIT_SCALES, unit_scale_for_height
 from .naming import MIXAMO_CORE, TRACKED_ALIASES, bone_key, first_alias, index_by_key
 from ..skeleton import CMU_BVH_NAMES, JOINT_NAMES, PARENTS, Motion
-
-#: Length units to metres. ``'cmu'`` is the CMU ASF unit (``length 0.45``:
-#: 1/0.45 inch), the unit of the popular CMU BVH conversion.
-UNIT_SCALES = {
-    "m": 1.0,
-    "cmu": 0.0254 / 0.45,
-    "inch": 0.0254,
-    "cm": 0.01,
-    "mm": 0.001,
-}
-#: Assumed body size for ``units='auto'`` (metres).
-TYPICAL_HEIGHT_M = 1.7
 
 # Y up -> motion space for a Z-up file: (x, y, z) -> (x, z, -y).
 _Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -191,10 +180,7 @@ def unit_scale(data: BvhData, units="auto") -> float:
         except KeyError:
             raise ValueError(f"unknown units {units!r}; use 'auto', a number or one of "
                              f"{', '.join(UNIT_SCALES)}") from None
-    h = rest_height(data)
-    if not h > 0:
-        return 1.0
-    return min(UNIT_SCALES.values(), key=lambda s: abs(np.log(h * s / TYPICAL_HEIGHT_M)))
+    return unit_scale_for_height(rest_height(data))
 
 
 # --------------------------------------------------------------------------- naming

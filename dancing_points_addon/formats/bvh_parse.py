@@ -9,7 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError, read_text
+from ..errors import InputError
+from .files import read_text
 from .limits import check_duration, check_rate
 from .naming import bone_key
 

@@ -1,5 +1,7 @@
-"""Writing output files atomically: a temporary file beside the output, renamed
-onto it only when complete. Every writer of the core goes through
+"""Files: reading only regular files (:func:`regular_file`, :func:`open_regular`,
+:func:`read_text`: never a FIFO, a device or a symbolic link loop), and writing
+output files atomically: a temporary file beside the output, renamed onto it
+only when complete. Every writer of the core goes through
 :func:`atomic_output` (one file) or :func:`atomic_outputs` (files that belong
 together, e.g. a duet's two BVH files), so a failed or interrupted write never
 leaves a half-written file and never replaces an existing one.
@@ -233,3 +235,75 @@ def new_file_mode(path) -> int:
         mask = os.umask(0o022)
         os.umask(mask)
         return 0o666 & ~mask
+
+
+# --------------------------------------------------------------------------- reading
+
+def regular_file(path, what: str = "a file", missing: str | None = None):
+    """``os.stat`` of ``path`` when it is a regular file (symbolic links
+    followed); else an :class:`InputError` naming it: no such file (``missing``,
+    default ``cannot read file (...)``), a symbolic link loop, a folder, or
+    something that is not a regular file (a FIFO, a device such as
+    ``/dev/zero``, a socket: reading one could block or never end).
+    Call it before opening a file for reading."""
+    import errno
+    import os
+    import stat
+
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise InputError(path, "symbolic link loop (cannot resolve the path)") from None
+        if missing is not None and exc.errno in (errno.ENOENT, errno.ENOTDIR):
+            if os.path.islink(path):
+                raise InputError(path, f"{missing} (broken symbolic link)") from None
+            raise InputError(path, missing) from None
+        raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
+    except ValueError as exc:  # e.g. an embedded NUL character in the name
+        raise InputError(path, f"invalid file name ({exc})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(path, f"is a folder, not {what}")
+    if not stat.S_ISREG(st.st_mode):
+        kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else
+                "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else
+                "a socket" if stat.S_ISSOCK(st.st_mode) else "not a plain file")
+        raise InputError(path, f"not a regular file ({kind}); give {what}")
+    return st
+
+
+def open_regular(path, what: str = "a file", missing: str | None = None):
+    """``path`` opened for binary reading after :func:`regular_file` accepted it
+    (opened non-blocking and checked again, so a FIFO swapped in meanwhile
+    neither blocks nor is read)."""
+    import os
+    import stat
+
+    regular_file(path, what, missing)
+    flags = os.O_RDONLY | getattr(os, "O_BINARY", 0) | getattr(os, "O_NONBLOCK", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise InputError(path, f"not a regular file; give {what}")
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_text(path) -> str:
+    """A text file's contents (UTF-8, with or without BOM, else Latin-1); a file
+    that cannot be read (missing, a folder, a FIFO or device, a symbolic link
+    loop) is an :class:`InputError` naming it."""
+    try:
+        with open_regular(path, "a text file") as f:
+            data = f.read()
+    except OSError as exc:
+        raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")

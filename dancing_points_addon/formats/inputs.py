@@ -8,7 +8,8 @@ import os
 
 import numpy as np
 
-from ..errors import InputError, regular_file
+from ..errors import InputError
+from .files import regular_file
 from .limits import MAX_ABS_TIME_S, MAX_GAP_S, check_duration, check_height, check_rate
 from ..resample import NET_FPS, resample_plan, tracked_after_resampling
 from .take import DEVICES, MAX_DISTANCE_M, Take, read_take, take_from_motion, take_from_tracked

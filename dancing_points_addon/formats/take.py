@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError, open_regular
-from .files import atomic_output
+from ..errors import InputError
+from .files import atomic_output, open_regular
 from .limits import MAX_ABS_TIME_S, MAX_DURATION_S, MAX_GAP_S, check_height
 from ..rotations import axis_rotation, matrix_to_quat
 from ..skeleton import HEAD_BONE, TRACKED, Motion
