@@ -169,6 +169,8 @@ def convert_job(job, progress):
     coll = active_take(context)
     if coll is None:
         raise UserError("{:s}: the import made no take".format(path))
+    if job.get("source"):  # a cluster worker's scratch copy: the take's Source is the client's file
+        coll.dancing_points.source = job["source"]
     take = take_from_collection(context, coll)
     try:
         synth = make_synthesizer(synthesis_options(opts, take.height))

@@ -63,6 +63,13 @@ class VIEW3D_PT_dancing_points_retarget(SubPanel, bpy.types.Panel):
         op.target = obj.name
         op = row.operator("dancing_points.retarget_map_save", text="Save", icon='FILE_TICK')
         op.target = obj.name
+        how = obj.get("dp_retarget_convention")
+        if how == "structure":
+            box.label(text="Mapped by structure: check the rows below", icon='ERROR')
+        elif how:
+            box.label(text="Convention: " + str(how), icon='CHECKMARK')
+        if all(n in obj.data.bones for n in ("torso", "DEF-spine", "thigh_fk.L", "upper_arm_fk.L")):
+            box.label(text="Rigify rig: solved on DEF- bones, its FK/IK controls are keyed", icon='INFO')
         box.prop(s, "preset_path")
         if len(obj.dp_retarget_map):
             box.template_list("DP_UL_retarget_map", "", obj, "dp_retarget_map", obj, "dp_retarget_map_index", rows=6)

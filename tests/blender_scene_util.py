@@ -144,3 +144,66 @@ class RecordingLayout:
             self.calls.append((name, a, k))
             return self
         return f
+
+
+def build_armature(name, bones, modes=('QUATERNION',), location=(0.0, 0.0, 0.0), rotation_z=0.0, body=True):
+    """An armature object from ``bones`` = ``(name, parent, head, tail, roll)`` (metres,
+    armature space), pose bones in the rotation ``modes`` in turn, the object at
+    ``location`` turned by ``rotation_z``; with ``body``, a skinned box around every
+    bone (rigid weights) parented to it."""
+    arm = bpy.data.armatures.new(name)
+    obj = bpy.data.objects.new(name, arm)
+    bpy.context.scene.collection.objects.link(obj)
+    bpy.context.view_layer.objects.active = obj
+    bpy.ops.object.mode_set(mode='EDIT')
+    for bname, parent, h, t, roll in bones:
+        eb = arm.edit_bones.new(bname)
+        eb.head, eb.tail, eb.roll = h, t, roll
+        if parent:
+            eb.parent = arm.edit_bones[parent]
+            eb.use_connect = bool(np.allclose(arm.edit_bones[parent].tail, h))
+    bpy.ops.object.mode_set(mode='OBJECT')
+    for i, pb in enumerate(obj.pose.bones):
+        pb.rotation_mode = modes[i % len(modes)]
+    obj.location = location
+    obj.rotation_euler = (0.0, 0.0, rotation_z)
+    if body:
+        verts, faces, groups = [], [], []
+        for bname, _, h, t, _ in bones:
+            h, t = np.array(h, dtype=float), np.array(t, dtype=float)
+            base = len(verts)
+            for a in (h, t):
+                for dx in (-0.03, 0.03):
+                    for dy in (-0.03, 0.03):
+                        verts.append(tuple(a + (dx, dy, 0.0)))
+            faces += [tuple(base + i for i in f) for f in ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6),
+                                                            (0, 2, 6, 4), (1, 5, 7, 3))]
+            groups.append((bname, list(range(base, base + 8))))
+        me = bpy.data.meshes.new(name + " Body")
+        me.from_pydata(verts, [], faces)
+        mesh = bpy.data.objects.new(name + " Body", me)
+        bpy.context.scene.collection.objects.link(mesh)
+        mesh.parent = obj
+        for bname, idx in groups:
+            mesh.vertex_groups.new(name=bname).add(idx, 1.0, 'REPLACE')
+        mesh.modifiers.new("Armature", 'ARMATURE').object = obj
+    return obj
+
+
+def enable_rigify():
+    """Enable Blender's bundled Rigify add-on (``rigify``, or its extension module);
+    returns the module name, or None when it is not available."""
+    import addon_utils
+
+    for mod in ("rigify", "bl_ext.blender_org.rigify"):
+        if any(m.__name__ == mod for m in addon_utils.modules()):
+            if mod not in bpy.context.preferences.addons:
+                bpy.ops.preferences.addon_enable(module=mod)
+            return mod
+    return None
+
+
+def pose_channels(obj):
+    """Every pose bone's channels (location, rotations, scale) as one array."""
+    return np.array([list(pb.location) + list(pb.rotation_quaternion) + list(pb.rotation_euler)
+                     + list(pb.rotation_axis_angle) + list(pb.scale) for pb in obj.pose.bones])

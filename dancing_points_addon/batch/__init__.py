@@ -13,7 +13,9 @@ and, inside Blender, ``blender --background --command dancing_points convert ...
 * :mod:`.progress`: the progress bar (stderr) and a result line per file (stdout),
   in the order the files finish (the report keeps the input order);
 * :mod:`.report`: the JSON report and the summary line;
-* :mod:`.options`: formats, exit statuses, the options a job carries.
+* :mod:`.options`: formats, exit statuses, the options a job carries;
+* :mod:`.cluster`: ``--cluster``, the same batch with the takes run as Dask
+  tasks on a cluster's workers (Dask imported only then).
 
 Before any work the command line is checked (inputs, the networks loaded once
 with :func:`~..nets.check_models`, the report path, the output folder's lock):
@@ -30,8 +32,8 @@ import os
 import sys
 import time
 
-from ..argtypes import (EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, height_metres, positive_float,
-                        positive_int, printable, thread_count)
+from ..argtypes import (EXIT_BAD_INPUT, EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, height_metres,
+                        positive_float, positive_int, printable, thread_count)
 from ..errors import InputError, one_line
 from .options import (BPY_FORMATS, BPY_INPUTS, CORE_INPUTS, FORMATS, check_rigs, default_jobs, job_options,
                       resolve_model_dir)
@@ -42,6 +44,7 @@ from .plan import (PART, check_not_inputs, discover, make_output_dirs, output_ba
 from .progress import Progress, eta, fmt_duration, result_line
 from .report import REPORT_NAME, build_report, check_report_path, is_report, summary_line, write_report
 from .scheduler import Batch
+from .cluster import cluster_spec
 
 __all__ = ["add_arguments", "run",
            "FORMATS", "BPY_FORMATS", "CORE_INPUTS", "BPY_INPUTS", "REPORT_NAME", "PART", "LOCK_NAME",
@@ -65,7 +68,13 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
                         "fbx = the two skinned armatures with their animation")
     p.add_argument("-j", "--jobs", type=positive_int, default=None, metavar="N",
                    help=f"worker processes (default: the number of cores, {default_jobs()} here; never more "
-                        f"than the files; a warning when more than the cores)")
+                        f"than the files; a warning when more than the cores); with --cluster: at most N "
+                        f"takes at once on the cluster (default: as many as its worker threads)")
+    p.add_argument("--cluster", type=cluster_spec, default=None, metavar="ADDRESS",
+                   help="run the takes as Dask tasks on a Dask cluster: the scheduler's address "
+                        "(tcp://HOST:8786), or local:N for N worker processes on this machine; needs "
+                        "the dask and distributed packages (not bundled with the extension) and the same "
+                        "version of this project and models on every worker (README: Batch on a cluster)")
     p.add_argument("--render", action="store_true",
                    help="also render a Workbench preview video NAME.mp4 (needs Blender's bpy)")
     p.add_argument("--overwrite", action="store_true",
@@ -98,7 +107,8 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
 
 def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
     """The batch conversion for parsed :func:`add_arguments` options; returns the
-    exit status (0 all done, 1 a file failed, 2 bad options, 130/143 stopped).
+    exit status (0 all done, 1 a file failed, 2 bad options or a cluster worker that
+    refused, 130/143 stopped).
     Raises a :class:`UserError` (one line) for a bad command line, before any
     work: no inputs, missing or damaged models (:func:`~..nets.check_models`), an
     output or report that is an input, a report path that is not a report,
@@ -116,7 +126,8 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise InputError(args.output_dir, "output path exists and is not a folder")
     needs_bpy = fmt in BPY_FORMATS or args.render
-    if needs_bpy and not in_blender:
+    cluster_addr = getattr(args, "cluster", None)
+    if needs_bpy and not in_blender and not cluster_addr:  # (on a cluster: the workers need bpy, checked there)
         import importlib.util
         if importlib.util.find_spec("bpy") is None:  # (only looks: the parent never imports it)
             raise InputError(None, f"--format {fmt}{' --render' if args.render else ''} needs Blender: "
@@ -142,6 +153,34 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
         raise InputError(report_path, "--report: this path is one of the outputs; choose another path")
     check_report_path(report_path, args.overwrite, explicit=bool(args.report))
     check_models(model_dir, args.threads or 1)  # once, here: not every file against a damaged network
+    cluster = None
+    if cluster_addr:  # before any work: a cluster that cannot run this batch is one line, exit 2
+        from .cluster import connect
+
+        cluster = connect(cluster_addr, model_dir, needs_bpy, err=err)
+    try:
+        batch, outcome, report, report_path, seconds = _run_planned(
+            args, entries, out_dir, fmt, jobs, model_dir, report_path, worker_cmd, cluster, out, err, t_start,
+            started)
+    finally:
+        if cluster is not None:
+            cluster.close()
+    print(printable(summary_line(report, outcome, seconds, report_path)), file=out, flush=True)
+    if batch.fatal:
+        print(printable(f"error: {batch.fatal}"), file=err)
+    if outcome == "refused":  # a worker of the cluster runs another version or models
+        return EXIT_BAD_INPUT
+    if outcome != "done":
+        print(f"error: {outcome}; no partial outputs were left; re-run with --resume to convert the rest",
+              file=err)
+        return EXIT_TERMINATED if outcome == "terminated" else EXIT_INTERRUPTED
+    return EXIT_FAILURE if report["counts"]["failed"] else EXIT_OK
+
+
+def _run_planned(args, entries, out_dir, fmt, jobs, model_dir, report_path, worker_cmd, cluster, out, err,
+                 t_start, started):
+    """The checked batch: lock the output folder, plan, run (locally or on ``cluster``),
+    write the report; ``(batch, outcome, report, report_path or None, seconds)``."""
     try:
         os.makedirs(out_dir, exist_ok=True)
     except OSError as exc:
@@ -153,7 +192,7 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
         n_run = sum(t.status == "pending" for t in tasks)
         n_workers = min(jobs, max(n_run, 1))  # never more workers than files
         cores = default_jobs()
-        if n_workers > cores:
+        if n_workers > cores and cluster is None:
             print(f"warning: --jobs {jobs}: {n_workers} worker processes on {cores} core{'s' if cores != 1 else ''} "
                   f"share them (each file takes longer, and each worker loads the networks)", file=err,
                   flush=True)
@@ -161,21 +200,21 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
         for t in tasks:  # decided before any work: report now
             if t.status != "pending":
                 prog.result(result_line(t, out_dir))
-        batch = Batch(tasks, n_workers, job_options(args, model_dir), fmt, worker_cmd, prog, out_dir)
+        if cluster is None:
+            batch = Batch(tasks, n_workers, job_options(args, model_dir), fmt, worker_cmd, prog, out_dir)
+        else:
+            from .cluster import ClusterBatch
+
+            batch = ClusterBatch(tasks, cluster, job_options(args, model_dir), fmt, prog, out_dir, jobs=args.jobs)
         outcome = batch.run()
         remove_empty_dirs(made)
         seconds = time.perf_counter() - t_start
         report = build_report(tasks, fmt, out_dir, batch.jobs, model_dir, started, seconds, outcome, batch.fatal)
+        if cluster is not None:
+            batch.annotate(report)
         try:
             write_report(report_path, report)
         except InputError as exc:
             print(printable(f"error: cannot write the report: {one_line(exc)}"), file=err)
             report_path = None
-    print(printable(summary_line(report, outcome, seconds, report_path)), file=out, flush=True)
-    if batch.fatal:
-        print(printable(f"error: {batch.fatal}"), file=err)
-    if outcome != "done":
-        print(f"error: {outcome}; no partial outputs were left; re-run with --resume to convert the rest",
-              file=err)
-        return EXIT_TERMINATED if outcome == "terminated" else EXIT_INTERRUPTED
-    return EXIT_FAILURE if report["counts"]["failed"] else EXIT_OK
+    return batch, outcome, report, report_path, seconds

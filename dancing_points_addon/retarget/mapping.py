@@ -9,7 +9,9 @@ chain share it in proportion to their rest lengths (Rigify's
 3-bone CMU spine). Target bones that are not mapped keep their reference pose
 relative to their parent. :func:`auto_mapping` guesses a mapping from the bone
 names for the conventions in ``presets/*.json`` (CMU/BVH, Mixamo with or
-without the ``mixamorig:`` prefix, Rigify ``DEF-``, Unreal);
+without the ``mixamorig:`` prefix, Rigify ``DEF-`` and meta-rig, VRM as
+exported by VRoid and VRM 1.0 humanoid names, Unreal; a rig no preset fits is
+mapped by structure, :mod:`.structure`);
 :func:`save_preset` / :func:`load_preset` write and read a mapping as JSON.
 """
 from __future__ import annotations

@@ -12,6 +12,7 @@ from ...dancing_points_addon.retarget import RetargetError
 from ...dancing_points_addon.errors import UserError, error_message
 from .. import bake
 from ..props import ROLE_PROP, ROLES, is_duet
+from . import apply
 from .keying import key_rig, keyed_world
 from .mapping import mapping_for, stored_mapping
 from .props import SOURCE_PROP, TARGET_PROP
@@ -31,9 +32,11 @@ class _Job:
         self.source, self.target = source, target
         bpy.context.view_layer.update()  # up-to-date matrix_world of objects moved since the last evaluation
         self.frames, self.pos, self.rot, bv, self.src_matrix = source_motion(source)
+        self.notes = []
         try:
-            mapping = mapping_for(target, preset)
-            self.ret = rt.Retargeter(bv, target_rig(target), mapping, foot_lock=foot_lock)
+            mapping = mapping_for(target, preset, self.notes)
+            self.ret = rt.Retargeter(bv, target_rig(target, deform_parents=apply.uses_controls(target, mapping)),
+                                     mapping, foot_lock=foot_lock)
         except RetargetError as exc:
             raise RetargetError("{:s}: {:s}".format(target.name, error_message(exc))) from None
         if origin is None:
@@ -44,13 +47,44 @@ class _Job:
         return rt.source_wrists(rt.source_world(self.pos, self.rot, self.src_matrix)[0])
 
     def key(self):
-        basis = self.ret.basis(self.pose.W)
+        """Key the solved pose (a new action; on a Rigify rig its controls), then
+        check with Blender's evaluation that the rig follows it; when it does not,
+        the rig is put back as it was and :class:`RetargetError` raised. Returns the action."""
         name = "DP {:s} {:s}".format(self.target.name, self.source.name)
-        action = key_rig(self.target, basis, self.frames, name)
+        self.snap = apply.snapshot(self.target)
+        self.src_prev = self.source.get(TARGET_PROP)
+        self.action = None
+        self.controls = apply.uses_controls(self.target, self.ret.mapping)
+        try:
+            if self.controls:
+                self.action = apply.key_controls(self.target, self.pose.W, self.frames, name)
+            else:
+                self.action = key_rig(self.target, self.ret.basis(self.pose.W), self.frames, name)
+            self.verified_error = apply.verify(self.target, self.ret, self.pose.W, self.frames)
+        except Exception:
+            self.undo()
+            raise
         self.target[SOURCE_PROP] = self.source.name
         self.source[TARGET_PROP] = self.target.name
-        action[SOURCE_PROP] = self.source.name
-        return action
+        self.action[SOURCE_PROP] = self.source.name
+        return self.action
+
+    def undo(self):
+        """Put the target back as it was before :meth:`key`."""
+        if getattr(self, "snap", None) is not None:
+            apply.restore(self.target, self.snap, self.action)
+            if self.src_prev is None:
+                self.source.pop(TARGET_PROP, None)
+            else:
+                self.source[TARGET_PROP] = self.src_prev
+            self.snap = self.action = None
+
+    def info(self):
+        out = {"action": self.action, "scale": self.ret.scale, "pose": self.pose, "retargeter": self.ret,
+               "frames": self.frames, "verified_error": self.verified_error, "controls": self.controls}
+        if self.notes:
+            out["note"] = " ".join(self.notes)
+        return out
 
 
 def _duet_origin(*sources):
@@ -103,16 +137,21 @@ def retarget_one(context, source, target, preset="", foot_lock=True, close_hands
         try:
             pframes, ppos, prot, pbv, pmat = source_motion(partner)
             if len(pframes) == len(job.frames) and np.allclose(pframes, job.frames):
-                pret = rt.Retargeter(pbv, target_rig(prig, store=False), stored_mapping(prig), foot_lock=False)
-                pw = pret.wrists(keyed_world(prig, pret, job.frames))
+                pmap = stored_mapping(prig)
+                prest = target_rig(prig, store=False, deform_parents=apply.uses_controls(prig, pmap))
+                pret = rt.Retargeter(pbv, prest, pmap, foot_lock=False)
+                if apply.uses_controls(prig, pret.mapping):  # keyed on controls: Blender's evaluation
+                    pw = pret.wrists(apply.evaluated_world(prig, job.frames))
+                else:
+                    pw = pret.wrists(keyed_world(prig, pret, job.frames))
                 src_b = rt.source_wrists(rt.source_world(ppos, prot, pmat)[0])
                 before, after = rt.close_hands(job.ret, job.pose, job.src_wrists(), src_b, wrists_b=pw)
                 info["hand_gap_before"], info["hand_gap_after"] = before, after
         except UserError as exc:
             info["warning"] = "hands not closed: {:s}".format(error_message(exc))
-    info["action"] = job.key()
-    info["pose"] = job.pose
-    info["retargeter"] = job.ret
+    job.key()
+    info.update(job.info())
+    info["frames"] = len(job.frames)
     return info
 
 
@@ -127,9 +166,17 @@ def retarget_pair(context, pairs, preset=("", ""), foot_lock=True, close_hands=T
         a, b = jobs
         before, after = rt.close_hands(a.ret, a.pose, a.src_wrists(), b.src_wrists(), b.ret, b.pose)
         out["hand_gap_before"], out["hand_gap_after"] = before, after
+    done = []
+    try:
+        for job in jobs:
+            job.key()
+            done.append(job)
+    except Exception:
+        for job in reversed(done):  # all or nothing: the other rig back as it was too
+            job.undo()
+        raise
     for job, role in zip(jobs, ROLES):
-        out[role] = {"action": job.key(), "scale": job.ret.scale, "pose": job.pose, "retargeter": job.ret,
-                     "frames": job.frames}
+        out[role] = job.info()
     return out
 
 

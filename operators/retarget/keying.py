@@ -15,10 +15,12 @@ def _path(name, prop):
     return 'pose.bones["{:s}"].{:s}'.format(bpy.utils.escape_identifier(name), prop)
 
 
-def key_rig(obj, basis, frames, action_name):
+def key_rig(obj, basis, frames, action_name, bones=None, extra=()):
     """A NEW action on ``obj`` keying every bone's location, rotation (in the pose
-    bone's own rotation mode) and scale from ``matrix_basis (T, B, 4, 4)``."""
-    names = [b.name for b in obj.data.bones]
+    bone's own rotation mode) and scale from ``matrix_basis (T, B, 4, 4)``.
+    ``bones``: the names of the bones of ``basis`` (default: all the rig's
+    bones); ``extra``: more channels to key, ``(data path, index, values (T,), group)``."""
+    names = [b.name for b in obj.data.bones] if bones is None else list(bones)
     modes = [obj.pose.bones[n].rotation_mode for n in names]
     loc, rot, scale = rt.channels(basis, modes)
     old, _ = compat.assigned_action(obj)
@@ -40,6 +42,8 @@ def key_rig(obj, basis, frames, action_name):
         else:
             key(name, "rotation_euler", rot[:, b, :3])
         key(name, "scale", scale[:, b, :3])
+    for path, index, values, group in extra:
+        compat.write_keys(compat.ensure_fcurves(action, slot, path, index, group), frames, np.asarray(values))
     return action
 
 

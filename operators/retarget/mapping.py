@@ -8,6 +8,9 @@ import bpy
 
 from ...dancing_points_addon import retarget as rt
 from ...dancing_points_addon.retarget import RetargetError
+from ...dancing_points_addon.retarget.structure import describe, structural_mapping
+
+CONVENTION_PROP = "dp_retarget_convention"  # on a target rig: how its stored mapping was made
 
 
 def stored_mapping(obj):
@@ -24,9 +27,28 @@ def set_mapping(obj, mapping):
         item.source = mapping.get(b.name, "")
 
 
-def mapping_for(obj, preset=""):
+def guess_mapping(obj):
+    """``(mapping, how)``: by the bone names when a convention fits (``how``: its
+    name), else by the rig's structure (``how``: ``"structure"``)."""
+    names = [b.name for b in obj.data.bones]
+    mapping, conv = rt.auto_mapping(names)
+    if mapping:
+        try:
+            rt.validate_mapping(mapping, names)
+            return mapping, conv
+        except RetargetError:
+            pass
+    from .rig import target_rig
+
+    mapping, _ = structural_mapping(target_rig(obj, store=False))
+    return mapping, "structure"
+
+
+def mapping_for(obj, preset="", notes=None):
     """The mapping to use for ``obj``: a preset (file path or built-in name) when
-    given, else the one stored on the object, else the automatic guess (stored)."""
+    given, else the one stored on the object, else the automatic guess (stored):
+    by the bone names, else by the rig's structure (then a line naming the mapped
+    bones is appended to ``notes``, to check in the bone-map panel)."""
     names = [b.name for b in obj.data.bones]
     if preset:
         path = bpy.path.abspath(preset)
@@ -42,9 +64,15 @@ def mapping_for(obj, preset=""):
     mapping = stored_mapping(obj)
     if mapping:
         return mapping
-    mapping, _ = rt.auto_mapping(names)
-    if not mapping:
-        raise RetargetError("no bone naming convention recognised on '{:s}' (CMU/BVH, Mixamo, Rigify DEF-, "
-                              "Unreal): load a preset or fill in the mapping".format(obj.name))
+    try:
+        mapping, how = guess_mapping(obj)
+    except RetargetError as exc:
+        raise RetargetError("no bone naming convention recognised on '{:s}' (CMU/BVH, Mixamo, Rigify, VRM, "
+                            "Unreal) and {:s}".format(obj.name, str(exc).replace(
+                                "no bone naming convention recognised, and ", ""))) from None
     set_mapping(obj, mapping)
+    obj[CONVENTION_PROP] = how
+    if how == "structure" and notes is not None:
+        notes.append("'{:s}': no naming convention recognised, bones mapped by structure (check them in the "
+                     "Bone Map panel): {:s}".format(obj.name, describe(mapping)))
     return mapping

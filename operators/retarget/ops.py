@@ -12,7 +12,9 @@ from ...dancing_points_addon.retarget import RetargetError
 from ...dancing_points_addon.errors import error_message
 from ..props import is_duet
 from .jobs import hide_duet_bodies, retarget_duet_onto, retarget_one, retarget_pair
-from .mapping import mapping_for, set_mapping, stored_mapping
+from ...dancing_points_addon.retarget.structure import describe, structural_mapping
+from .mapping import CONVENTION_PROP, guess_mapping, mapping_for, set_mapping, stored_mapping
+from .rig import target_rig
 from .props import settings
 
 
@@ -41,7 +43,8 @@ class DANCING_POINTS_OT_retarget(_RetargetOperator, bpy.types.Operator):
     target: StringProperty(name="Target", description="Armature that receives the motion")
     preset: StringProperty(name="Preset", subtype='FILE_PATH', options={'SKIP_SAVE'},
                            description="Bone mapping preset (a .json file or a built-in name: mixamo, rigify, "
-                                       "unreal, cmu_bvh); empty: the mapping stored on the target, else automatic")
+                                       "rigify_metarig, vrm0, vrm1, unreal, cmu_bvh); empty: the mapping stored "
+                                       "on the target, else automatic (by names, else by structure)")
     foot_lock: BoolProperty(name="Foot Locking", default=True)
     close_hands: BoolProperty(name="Close Hands", default=True)
 
@@ -51,10 +54,12 @@ class DANCING_POINTS_OT_retarget(_RetargetOperator, bpy.types.Operator):
         if src is None or tgt is None:
             raise RetargetError("no object named '{:s}'".format(self.source if src is None else self.target))
         info = retarget_one(context, src, tgt, self.preset, self.foot_lock, self.close_hands)
-        if "warning" in info:
-            self.report({'WARNING'}, info["warning"])
-        return "Retargeted '{:s}' onto '{:s}': action '{:s}', {:d} frames, scale {:.3f}".format(
-            src.name, tgt.name, info["action"].name, info["frames"], info["scale"])
+        for k in ("note", "warning"):
+            if k in info:
+                self.report({'WARNING'}, info[k])
+        return "Retargeted '{:s}' onto '{:s}': action '{:s}', {:d} frames, scale {:.3f}{:s}".format(
+            src.name, tgt.name, info["action"].name, info["frames"], info["scale"],
+            " (Rigify controls keyed, limbs in FK)" if info.get("controls") else "")
 
 
 class DANCING_POINTS_OT_retarget_duet(_RetargetOperator, bpy.types.Operator):
@@ -97,6 +102,9 @@ class DANCING_POINTS_OT_retarget_duet(_RetargetOperator, bpy.types.Operator):
                         if is_duet(coll):
                             hide_duet_bodies(coll)
         n = sum(1 for v in out.values() if isinstance(v, dict) and "action" in v)
+        for v in out.values():
+            if isinstance(v, dict) and "note" in v:
+                self.report({'WARNING'}, v["note"])
         return "Retargeted {:d} dancer(s)".format(n)
 
 
@@ -123,15 +131,27 @@ class DANCING_POINTS_OT_retarget_map_auto(_RetargetOperator, bpy.types.Operator)
     target: StringProperty(name="Target", options={'SKIP_SAVE'})
     convention: EnumProperty(
         name="Convention", default='AUTO',
-        items=(('AUTO', "Automatic", "Detect from the bone names"), ('mixamo', "Mixamo", ""),
-               ('rigify', "Rigify DEF-", ""), ('unreal', "Unreal", ""), ('cmu_bvh', "CMU / BVH", ""),
-               ('cmu_asf', "CMU ASF", "")))
+        items=(('AUTO', "Automatic", "Detect from the bone names, else map by the rig's structure"),
+               ('mixamo', "Mixamo", ""), ('rigify', "Rigify (generated rig, DEF-)", ""),
+               ('rigify_metarig', "Rigify Meta-Rig", ""), ('vrm0', "VRM (VRoid J_Bip_)", ""),
+               ('vrm1', "VRM 1.0 Humanoid", ""), ('unreal', "Unreal", ""), ('cmu_bvh', "CMU / BVH", ""),
+               ('cmu_asf', "CMU ASF", ""),
+               ('STRUCTURE', "By Structure", "Find pelvis, legs, spine and arms from the hierarchy and rest pose")))
 
     def run(self, context):
         obj = _target_from(context, self.target)
         names = [b.name for b in obj.data.bones]
-        mapping, conv = rt.auto_mapping(names, convention=None if self.convention == 'AUTO' else self.convention)
+        if self.convention == 'AUTO':
+            mapping, conv = guess_mapping(obj)
+        elif self.convention == 'STRUCTURE':
+            mapping, _ = structural_mapping(target_rig(obj, store=False))
+            conv = "structure"
+        else:
+            mapping, conv = rt.auto_mapping(names, convention=self.convention)
         set_mapping(obj, mapping)
+        obj[CONVENTION_PROP] = conv or ""
+        if conv == "structure":
+            self.report({'WARNING'}, "Mapped by structure, check: " + describe(mapping))
         return "{:d} of {:d} bones mapped ({:s})".format(len(mapping), len(names), conv or "none")
 
 

@@ -56,8 +56,14 @@ def reference_basis(obj, store=True):
     return arr
 
 
-def target_rig(obj, store=True):
+def target_rig(obj, store=True, deform_parents=False):
+    """The target as a :class:`TargetRig`; with ``deform_parents`` (a generated
+    Rigify rig solved on its DEF- bones), every DEF- bone under the DEF- bone it follows."""
     names, parents, rest, lengths = _bone_arrays(obj)
+    if deform_parents:
+        from ...dancing_points_addon.retarget.rigify import deform_parents as _deform_parents
+
+        parents = _deform_parents(names, parents)
     return rt.TargetRig(names, parents, rest, lengths, reference_basis(obj, store), mat(obj.matrix_world))
 
 
@@ -121,8 +127,11 @@ def load_rig_file(path, context=None):
             dst.objects = list(src.objects)
         coll = bpy.data.collections.new(os.path.splitext(os.path.basename(path))[0])
         context.scene.collection.children.link(coll)
+        # bone shapes (a Rigify rig's WGT- widgets) come along but are not put in the scene
+        shapes = {pb.custom_shape for o in dst.objects if o is not None and o.type == 'ARMATURE'
+                  for pb in o.pose.bones if pb.custom_shape is not None}
         for o in dst.objects:
-            if o is not None:
+            if o is not None and o not in shapes:
                 coll.objects.link(o)
     elif ext in (".glb", ".gltf"):
         src = path
