@@ -8,6 +8,7 @@ import numpy as np
 from conftest import ROOT, SALSA
 from dancing_points_addon.formats.take import COLUMNS, Take
 from dancing_points_addon.rotations import matrix_to_quat, quat_to_matrix
+from dancing_points_addon.skeleton import Motion
 
 IDENT = [1.0, 0.0, 0.0, 0.0]
 
@@ -194,3 +195,25 @@ def unknown_bone(lines):
     i = next(k for k, ln in enumerate(lines) if ln.startswith("head ") and k > 100)
     lines[i] = "nose 1 2 3"
     return i + 1
+
+
+# --------------------------------------------------------------------------- motion clips
+
+def cut(motion: Motion, start: int, n: int) -> Motion:
+    """Frames ``start .. start + n`` of a motion."""
+    return Motion(motion.positions[start:start + n], motion.rotations[start:start + n], motion.fps,
+                  motion.bone_vectors, motion.source)
+
+
+def trim_amc(src, dst, n_frames):
+    """The header and the first ``n_frames`` frame blocks of an AMC file."""
+    out, frames = [], 0
+    with open(src, newline="") as f:
+        for line in f:
+            if line.strip().isdigit():
+                frames += 1
+                if frames > n_frames:
+                    break
+            out.append(line)
+    with open(dst, "w", newline="") as f:
+        f.writelines(out)

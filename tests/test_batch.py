@@ -27,10 +27,11 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
+from helpers import cut, trim_amc
 from dancing_points_addon import batch
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.bvh import load_bvh, write_bvh
-from dancing_points_addon.skeleton import JOINT_NAMES, Motion
+from dancing_points_addon.skeleton import JOINT_NAMES
 from dancing_points_addon.formats.take import take_from_motion, write_take
 
 N60 = 300  # frames at 60 Hz per good take (5 s): 150 duet frames
@@ -45,23 +46,6 @@ BAD = {"broken.csv": "unknown header column", "sub/trunc.bvh": "trunc.bvh", "noa
 
 # --------------------------------------------------------------------------- helpers
 
-def cut(motion: Motion, start: int, n: int) -> Motion:
-    return Motion(motion.positions[start:start + n], motion.rotations[start:start + n], motion.fps,
-                  motion.bone_vectors, motion.source)
-
-
-def trim_amc(src, dst, n_frames):
-    """The header and the first ``n_frames`` frame blocks of an AMC file."""
-    out, frames = [], 0
-    with open(src, newline="") as f:
-        for line in f:
-            if line.strip().isdigit():
-                frames += 1
-                if frames > n_frames:
-                    break
-            out.append(line)
-    with open(dst, "w", newline="") as f:
-        f.writelines(out)
 
 
 def run_cli(*args, timeout=600, **kw):

@@ -31,6 +31,7 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
+from helpers import cut, trim_amc
 
 distributed = pytest.importorskip("distributed", reason="dask's distributed package is not installed")
 
@@ -39,7 +40,6 @@ from dancing_points_addon.batch import cluster as dp_cluster  # noqa: E402
 from dancing_points_addon.formats.asf_amc import load_amc  # noqa: E402
 from dancing_points_addon.formats.bvh import write_bvh  # noqa: E402
 from dancing_points_addon.formats.take import take_from_motion, write_take  # noqa: E402
-from dancing_points_addon.skeleton import Motion  # noqa: E402
 
 SIGKILL = getattr(signal, "SIGKILL", signal.SIGTERM)
 DASK = os.path.join(os.path.dirname(sys.executable), "dask")
@@ -136,22 +136,6 @@ def client(dask_cluster):
 
 # --------------------------------------------------------------------------- data and runs
 
-def cut(motion: Motion, start: int, n: int) -> Motion:
-    return Motion(motion.positions[start:start + n], motion.rotations[start:start + n], motion.fps,
-                  motion.bone_vectors, motion.source)
-
-
-def trim_amc(src, dst, n_frames):
-    out, frames = [], 0
-    with open(src, newline="") as f:
-        for line in f:
-            if line.strip().isdigit():
-                frames += 1
-                if frames > n_frames:
-                    break
-            out.append(line)
-    with open(dst, "w", newline="") as f:
-        f.writelines(out)
 
 
 @pytest.fixture(scope="module")
