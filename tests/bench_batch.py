@@ -25,27 +25,10 @@ import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from dancing_points_addon import nets  # noqa: E402
+from helpers import busy_seconds, model_dir  # noqa: E402
 from dancing_points_addon.argtypes import positive_int  # noqa: E402
 SALSA = pathlib.Path(os.environ.get("DP_SHARED", ROOT.parent / "shared")) / "data" / "cmu_salsa"
 GOAL = 1.7
-
-
-def model_dir(explicit):
-    for cand in (explicit, os.environ.get(nets.MODEL_ENV, ""), nets.MODEL_DIR):
-        if cand and all(os.path.isfile(os.path.join(cand, f)) for f in nets.MODEL_FILES.values()):
-            return cand
-    sys.exit("bench_batch: no synthesis models (give --models DIR)")
-
-
-def _busy_seconds():
-    """CPU seconds spent by the whole machine (all processes), from /proc/stat; None elsewhere."""
-    try:
-        with open("/proc/stat") as f:
-            v = [int(x) for x in f.readline().split()[1:]]
-    except OSError:
-        return None
-    return (sum(v[:8]) - v[3] - v[4]) / os.sysconf("SC_CLK_TCK")
 
 
 def _children_seconds():
@@ -58,11 +41,11 @@ def timed_batch(takes, out, fmt, jobs, models):
     other processes meanwhile (in cores; None where unknown)."""
     cmd = [sys.executable, "-m", "dancing_points_addon", "batch", *map(str, takes), "-o", str(out),
            "--format", fmt, "--jobs", str(jobs), "--models", models, "--no-progress", "--overwrite"]
-    busy0, ours0 = _busy_seconds(), _children_seconds()
+    busy0, ours0 = busy_seconds(), _children_seconds()
     t0 = time.perf_counter()
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     dt = time.perf_counter() - t0
-    busy1, ours1 = _busy_seconds(), _children_seconds()
+    busy1, ours1 = busy_seconds(), _children_seconds()
     if res.returncode != 0:
         sys.exit(f"bench_batch: batch failed ({res.returncode}):\n{res.stdout}{res.stderr}")
     with open(os.path.join(out, "batch_report.json")) as f:
@@ -83,7 +66,7 @@ def main():
     ap.add_argument("--formats", default="", help="comma-separated formats to time as well")
     ap.add_argument("--rounds", type=positive_int, default=3, help="alternating rounds; the best time of each counts")
     args = ap.parse_args()
-    models = model_dir(args.models)
+    models = model_dir(args.models, "bench_batch")
     takes = [SALSA / f"60_{i:02d}.amc" for i in range(1, 9)]
     print(f"8 takes ({', '.join(t.name for t in takes)}), models {models}, {os.cpu_count()} cores")
     with tempfile.TemporaryDirectory(prefix="bench_batch_") as tmp:

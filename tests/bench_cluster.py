@@ -39,29 +39,12 @@ import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from dancing_points_addon import nets  # noqa: E402
+from helpers import busy_seconds, model_dir  # noqa: E402
 from dancing_points_addon.argtypes import positive_int  # noqa: E402
 
 SALSA = pathlib.Path(os.environ.get("DP_SHARED", ROOT.parent / "shared")) / "data" / "cmu_salsa"
 DASK = os.path.join(os.path.dirname(sys.executable), "dask")
 GOAL = 0.9
-
-
-def model_dir(explicit):
-    for cand in (explicit, os.environ.get(nets.MODEL_ENV, ""), nets.MODEL_DIR):
-        if cand and all(os.path.isfile(os.path.join(cand, f)) for f in nets.MODEL_FILES.values()):
-            return cand
-    sys.exit("bench_cluster: no synthesis models (give --models DIR)")
-
-
-def _busy_seconds():
-    """CPU seconds spent by the whole machine (all processes), from /proc/stat; None elsewhere."""
-    try:
-        with open("/proc/stat") as f:
-            v = [int(x) for x in f.readline().split()[1:]]
-    except OSError:
-        return None
-    return (sum(v[:8]) - v[3] - v[4]) / os.sysconf("SC_CLK_TCK")
 
 
 def _pids_seconds(pids):
@@ -165,11 +148,11 @@ def timed_batch(code, takes, out, fmt, models, extra, cluster_pids=()):
     processes meanwhile (in cores; None where unknown)."""
     cmd = [sys.executable, "-m", "dancing_points_addon", "batch", *map(str, takes), "-o", str(out),
            "--format", fmt, "--models", models, "--no-progress", "--overwrite", *extra]
-    busy0, ours0 = _busy_seconds(), _children_seconds() + _pids_seconds(cluster_pids)
+    busy0, ours0 = busy_seconds(), _children_seconds() + _pids_seconds(cluster_pids)
     t0 = time.perf_counter()
     res = subprocess.run(cmd, cwd=code, capture_output=True, text=True)
     dt = time.perf_counter() - t0
-    busy1, ours1 = _busy_seconds(), _children_seconds() + _pids_seconds(cluster_pids)
+    busy1, ours1 = busy_seconds(), _children_seconds() + _pids_seconds(cluster_pids)
     if res.returncode != 0:
         sys.exit(f"bench_cluster: batch failed ({res.returncode}):\n{res.stdout}{res.stderr}")
     with open(os.path.join(out, "batch_report.json")) as f:
@@ -196,7 +179,7 @@ def main():
     ap.add_argument("--max-other", type=float, default=0.15,
                     help="a run counts when other processes used at most this many cores (default 0.15)")
     args = ap.parse_args()
-    models = model_dir(args.models)
+    models = model_dir(args.models, "bench_cluster")
     takes = [SALSA / f"60_{i:02d}.amc" for i in range(1, 9)]
     print(f"{len(takes)} takes ({', '.join(t.name for t in takes)}), models {models}, {os.cpu_count()} cores")
     ratios = {}

@@ -1,11 +1,14 @@
 """Helpers shared by several test modules (tests never import one another)."""
+import json
+import os
 import shutil
 import subprocess
 import sys
+import textwrap
 
 import numpy as np
 
-from conftest import ROOT, SALSA
+from conftest import MODELS, ROOT, SALSA
 from dancing_points_addon.formats.take import COLUMNS, Take
 from dancing_points_addon.rotations import matrix_to_quat, quat_to_matrix
 from dancing_points_addon.skeleton import Motion
@@ -217,3 +220,175 @@ def trim_amc(src, dst, n_frames):
             out.append(line)
     with open(dst, "w", newline="") as f:
         f.writelines(out)
+
+
+N60 = 300  # frames at 60 Hz per good take of :func:`make_takes` (5 s): 150 duet frames
+
+
+def make_takes(d, salsa_dir):
+    """A folder ``d`` of real takes (CSV, BVH, AMC; sub-folders) plus broken and
+    ignored files, for the batch tests (local and on a cluster)."""
+    from dancing_points_addon.formats.asf_amc import load_amc
+    from dancing_points_addon.formats.bvh import write_bvh
+    from dancing_points_addon.formats.take import take_from_motion, write_take
+
+    for sub in ("sub", "amc", "noasf"):
+        (d / sub).mkdir()
+    write_take(d / "a.csv", take_from_motion(cut(load_amc(salsa_dir / "60_01.amc"), 600, N60)))
+    write_take(d / "c.csv", take_from_motion(cut(load_amc(salsa_dir / "60_04.amc"), 0, N60)))
+    write_bvh(d / "sub" / "b.bvh", cut(load_amc(salsa_dir / "60_02.amc"), 300, N60))
+    trim_amc(salsa_dir / "60_03.amc", d / "amc" / "60_03.amc", N60)
+    shutil.copy(salsa_dir / "60.asf", d / "amc" / "60.asf")
+    # broken: bad header, truncated BVH, AMC without its ASF, empty file
+    (d / "broken.csv").write_text("time,head_px,foo\n0,1,2\n")
+    text = (d / "sub" / "b.bvh").read_text()
+    (d / "sub" / "trunc.bvh").write_text(text[:len(text) // 50])
+    trim_amc(salsa_dir / "61_09.amc", d / "noasf" / "61_09.amc", 50)
+    (d / "empty.csv").write_text("")
+    # ignored: other extensions, hidden files
+    (d / "notes.txt").write_text("not a take")
+    (d / "amc" / ".hidden.csv").write_text("time\n")
+    return d
+
+
+def model_dir(explicit, tool):
+    """The models folder of a benchmark script (``--models`` > $DP_MODEL_DIR > bundled), or exit."""
+    from dancing_points_addon.errors import InputError
+    from dancing_points_addon.nets import resolve_model_dir
+
+    try:
+        return resolve_model_dir(explicit)
+    except InputError:
+        sys.exit(f"{tool}: no synthesis models (give --models DIR)")
+
+
+def busy_seconds():
+    """CPU seconds spent by the whole machine (all processes), from /proc/stat; None elsewhere."""
+    try:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:]]
+    except OSError:
+        return None
+    return (sum(v[:8]) - v[3] - v[4]) / os.sysconf("SC_CLK_TCK")
+
+
+def target_rig_from_bones(bones, world=None):
+    """A retarget :class:`TargetRig` of ``bones`` = ``(name, parent, head, tail,
+    roll)`` (armature space, metres): rest matrices as Blender makes them from a
+    head, a tail and a roll; the object at ``world`` (4×4, default identity)."""
+    from dancing_points_addon.retarget import TargetRig
+
+    names = [b[0] for b in bones]
+    parents = [names.index(b[1]) if b[1] else -1 for b in bones]
+    rest = []
+    for _, _, h, t, roll in bones:
+        y = np.subtract(t, h) / np.linalg.norm(np.subtract(t, h))
+        ref = np.array([0.0, 0.0, 1.0]) if abs(y[2]) < 0.9 else np.array([0.0, -1.0, 0.0])
+        x = np.cross(y, ref)
+        x /= np.linalg.norm(x)
+        z = np.cross(x, y)
+        c, s_ = np.cos(roll), np.sin(roll)
+        x, z = c * x + s_ * z, -s_ * x + c * z
+        m = np.eye(4)
+        m[:3, :3] = np.stack([x, y, z], axis=1)
+        m[:3, 3] = h
+        rest.append(m)
+    lengths = [np.linalg.norm(np.subtract(t, h)) for _, _, h, t, _ in bones]
+    return TargetRig(names, parents, np.array(rest), lengths, matrix_world=world)
+
+
+def apose_rig():
+    """A rig in another convention and rest pose (Unreal names, A-pose, facing
+    +Y in armature space, arbitrary rolls): ``(joints, bones)`` where bones are
+    ``(name, parent, head, tail, roll)`` in metres."""
+    s = np.sqrt(0.5)
+    bones = [("root", None, (0, 0, 0), (0, 0.2, 0), 0.0),
+             ("pelvis", "root", (0, 0, 0.88), (0, 0, 0.98), 1.1),
+             ("spine_01", "pelvis", (0, 0, 0.98), (0, 0.01, 1.09), 0.3),
+             ("spine_02", "spine_01", (0, 0.01, 1.09), (0, 0.01, 1.20), -0.7),
+             ("spine_03", "spine_02", (0, 0.01, 1.20), (0, 0, 1.32), 2.0),
+             ("neck_01", "spine_03", (0, 0, 1.32), (0, 0.02, 1.47), 0.0),
+             ("head", "neck_01", (0, 0.02, 1.47), (0, 0.02, 1.64), 0.5)]
+    for sg, side in ((-1, "l"), (1, "r")):
+        x = sg  # facing +Y: the left side is -X
+        sh = np.array([0.17 * x, 0.0, 1.30])
+        d = np.array([s * x, 0.0, -s])
+        el, wr, hd = sh + 0.30 * d, sh + 0.57 * d, sh + 0.65 * d
+        bones += [("clavicle_" + side, "spine_03", (0.03 * x, 0, 1.29), tuple(sh), 0.4 * x),
+                  ("upperarm_" + side, "clavicle_" + side, tuple(sh), tuple(el), 1.3 * x),
+                  ("upperarm_twist_01_" + side, "upperarm_" + side, tuple((sh + el) / 2), tuple(el), 0.0),
+                  ("lowerarm_" + side, "upperarm_" + side, tuple(el), tuple(wr), -0.9),
+                  ("hand_" + side, "lowerarm_" + side, tuple(wr), tuple(hd), 2.5),
+                  ("index_01_" + side, "hand_" + side, tuple(hd), tuple(hd + 0.04 * d), 0.0),
+                  ("thigh_" + side, "pelvis", (0.09 * x, 0, 0.86), (0.09 * x, 0, 0.465), 0.8 * x),
+                  ("calf_" + side, "thigh_" + side, (0.09 * x, 0, 0.465), (0.09 * x, 0, 0.08), -0.4),
+                  ("foot_" + side, "calf_" + side, (0.09 * x, 0, 0.08), (0.09 * x, 0.12, 0.03), 3.0),
+                  ("ball_" + side, "foot_" + side, (0.09 * x, 0.12, 0.03), (0.09 * x, 0.18, 0.03), 0.0)]
+    return bones
+
+
+# --------------------------------------------------------------------------- batch runs
+
+def run_cli_long(*args, timeout=600, **kw):
+    """``python -m dancing_points_addon ARGS`` with a batch's time limit (and ``subprocess.run`` options)."""
+    return subprocess.run([sys.executable, "-m", "dancing_points_addon", *map(str, args)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=timeout, **kw)
+
+
+def run_batch(inputs, out, fmt="npz", *extra, jobs=2, timeout=600):
+    inputs = inputs if isinstance(inputs, (list, tuple)) else [inputs]
+    """``batch`` of ``inputs`` into ``out`` with the shipped models, no progress bar."""
+    return run_cli_long("batch", *inputs, "-o", out, "--format", fmt, "--jobs", jobs, "--models", MODELS,
+                   "--no-progress", *extra, timeout=timeout)
+
+
+def read_report(out):
+    """The batch report in ``out``."""
+    from dancing_points_addon.batch import REPORT_NAME
+
+    with open(os.path.join(out, REPORT_NAME)) as f:
+        return json.load(f)
+
+
+_PRELUDE = """
+def action_fcurves(act):
+    # an action's F-Curves: legacy action.fcurves, or the channelbags of a slotted action
+    if act is None:
+        return []
+    fcs = list(getattr(act, "fcurves", []) or [])
+    if not fcs:
+        for layer in act.layers:
+            for strip in layer.strips:
+                for bag in strip.channelbags:
+                    fcs.extend(bag.fcurves)
+    return fcs
+"""
+
+
+def run_bpy_script(code, timeout=600):
+    """Run ``code`` in a fresh Python with bpy (``action_fcurves(action)`` defined);
+    it prints ``RESULT <json>``."""
+    res = subprocess.run([sys.executable, "-c", _PRELUDE + textwrap.dedent(code)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=timeout)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    found = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
+    assert found, res.stdout[-3000:] + res.stderr[-3000:]
+    return json.loads(found[-1][len("RESULT "):])
+
+
+# --------------------------------------------------------------------------- retarget tests
+
+# The take: seconds 10-15 of CMU salsa 60_10 (the dancers hold hands in it).
+START, SECONDS = 10.0, 5.0
+CM = 1e-2
+
+# Landmarks: source DP bone whose tail it is / target bone whose head it is, per convention.
+SRC_POINTS = {"lhip": "lhipjoint", "rhip": "rhipjoint", "head": "upperneck", "lwrist": "lwrist",
+              "rwrist": "rwrist", "lankle": "ltibia", "rankle": "rtibia", "lball": "lfoot", "rball": "rfoot"}
+TGT_POINTS = {
+    "mixamo": {"lhip": "LeftUpLeg", "rhip": "RightUpLeg", "head": "Head", "lwrist": "LeftHand",
+               "rwrist": "RightHand", "lankle": "LeftFoot", "rankle": "RightFoot", "lball": "LeftToeBase",
+               "rball": "RightToeBase"},
+    "unreal": {"lhip": "thigh_l", "rhip": "thigh_r", "head": "head", "lwrist": "hand_l", "rwrist": "hand_r",
+               "lankle": "foot_l", "rankle": "foot_r", "lball": "ball_l", "rball": "ball_r"},
+}

@@ -20,21 +20,19 @@ import shutil
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 
 import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
-from helpers import cut, trim_amc
+from helpers import N60, cut, make_takes, read_report, run_batch, run_bpy_script, run_cli_long as run_cli
 from dancing_points_addon import batch
 from dancing_points_addon.formats.asf_amc import load_amc
-from dancing_points_addon.formats.bvh import load_bvh, write_bvh
+from dancing_points_addon.formats.bvh import load_bvh
 from dancing_points_addon.skeleton import JOINT_NAMES
 from dancing_points_addon.formats.take import take_from_motion, write_take
 
-N60 = 300  # frames at 60 Hz per good take (5 s): 150 duet frames
 N30 = N60 // 2
 
 
@@ -45,24 +43,6 @@ BAD = {"broken.csv": "unknown header column", "sub/trunc.bvh": "trunc.bvh", "noa
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-
-def run_cli(*args, timeout=600, **kw):
-    return subprocess.run([sys.executable, "-m", "dancing_points_addon", *map(str, args)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=timeout, **kw)
-
-
-def run_batch(inputs, out, fmt="npz", *extra, jobs=2, timeout=600):
-    inputs = inputs if isinstance(inputs, (list, tuple)) else [inputs]
-    return run_cli("batch", *inputs, "-o", out, "--format", fmt, "--jobs", jobs, "--models", MODELS,
-                   "--no-progress", *extra, timeout=timeout)
-
-
-def read_report(out):
-    with open(os.path.join(out, batch.REPORT_NAME)) as f:
-        return json.load(f)
-
 
 def by_input(report, root):
     return {os.path.relpath(r["input"], root): r for r in report["files"]}
@@ -78,56 +58,12 @@ def leftovers(folder):
     return bad
 
 
-_PRELUDE = """
-def action_fcurves(act):
-    # an action's F-Curves: legacy action.fcurves, or the channelbags of a slotted action
-    if act is None:
-        return []
-    fcs = list(getattr(act, "fcurves", []) or [])
-    if not fcs:
-        for layer in act.layers:
-            for strip in layer.strips:
-                for bag in strip.channelbags:
-                    fcs.extend(bag.fcurves)
-    return fcs
-"""
-
-
-def run_bpy_script(code, timeout=600):
-    """Run ``code`` in a fresh Python with bpy (``action_fcurves(action)`` defined);
-    it prints ``RESULT <json>``."""
-    res = subprocess.run([sys.executable, "-c", _PRELUDE + textwrap.dedent(code)], cwd=ROOT, capture_output=True,
-                         text=True, timeout=timeout)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    found = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
-    assert found, res.stdout[-3000:] + res.stderr[-3000:]
-    return json.loads(found[-1][len("RESULT "):])
-
-
 # --------------------------------------------------------------------------- data
 
 @pytest.fixture(scope="module")
 def takes(tmp_path_factory, salsa_dir):
     """A folder of real takes (CSV, BVH, AMC; sub-folders) plus broken and ignored files."""
-    d = tmp_path_factory.mktemp("takes")
-    (d / "sub").mkdir()
-    (d / "amc").mkdir()
-    (d / "noasf").mkdir()
-    write_take(d / "a.csv", take_from_motion(cut(load_amc(salsa_dir / "60_01.amc"), 600, N60)))
-    write_take(d / "c.csv", take_from_motion(cut(load_amc(salsa_dir / "60_04.amc"), 0, N60)))
-    write_bvh(d / "sub" / "b.bvh", cut(load_amc(salsa_dir / "60_02.amc"), 300, N60))
-    trim_amc(salsa_dir / "60_03.amc", d / "amc" / "60_03.amc", N60)
-    shutil.copy(salsa_dir / "60.asf", d / "amc" / "60.asf")
-    # broken: bad header, truncated BVH, AMC without its ASF, empty file
-    (d / "broken.csv").write_text("time,head_px,foo\n0,1,2\n")
-    text = (d / "sub" / "b.bvh").read_text()
-    (d / "sub" / "trunc.bvh").write_text(text[:len(text) // 50])
-    trim_amc(salsa_dir / "61_09.amc", d / "noasf" / "61_09.amc", 50)
-    (d / "empty.csv").write_text("")
-    # ignored: other extensions, hidden files
-    (d / "notes.txt").write_text("not a take")
-    (d / "amc" / ".hidden.csv").write_text("time\n")
-    return d
+    return make_takes(tmp_path_factory.mktemp("takes"), salsa_dir)
 
 
 _RUNS = {}

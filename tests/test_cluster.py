@@ -31,19 +31,17 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
-from helpers import cut, trim_amc
+from helpers import N60, cut, make_takes
 
 distributed = pytest.importorskip("distributed", reason="dask's distributed package is not installed")
 
 from dancing_points_addon import batch  # noqa: E402
 from dancing_points_addon.batch import cluster as dp_cluster  # noqa: E402
 from dancing_points_addon.formats.asf_amc import load_amc  # noqa: E402
-from dancing_points_addon.formats.bvh import write_bvh  # noqa: E402
 from dancing_points_addon.formats.take import take_from_motion, write_take  # noqa: E402
 
 SIGKILL = getattr(signal, "SIGKILL", signal.SIGTERM)
 DASK = os.path.join(os.path.dirname(sys.executable), "dask")
-N60 = 300  # frames at 60 Hz per good take (5 s): 150 duet frames
 GOOD = {"a.csv": "a", "c.csv": "c", "sub/b.bvh": "sub/b", "amc/60_03.amc": "amc/60_03"}
 BAD = {"broken.csv": "unknown header column", "sub/trunc.bvh": "trunc.bvh", "noasf/61_09.amc": "ASF",
        "empty.csv": "empty.csv"}
@@ -141,21 +139,7 @@ def client(dask_cluster):
 @pytest.fixture(scope="module")
 def takes(tmp_path_factory, salsa_dir):
     """Good takes (CSV, BVH, AMC; sub-folders) and broken ones (as tests/test_batch.py)."""
-    d = tmp_path_factory.mktemp("takes")
-    for sub in ("sub", "amc", "noasf"):
-        (d / sub).mkdir()
-    write_take(d / "a.csv", take_from_motion(cut(load_amc(salsa_dir / "60_01.amc"), 600, N60)))
-    write_take(d / "c.csv", take_from_motion(cut(load_amc(salsa_dir / "60_04.amc"), 0, N60)))
-    write_bvh(d / "sub" / "b.bvh", cut(load_amc(salsa_dir / "60_02.amc"), 300, N60))
-    trim_amc(salsa_dir / "60_03.amc", d / "amc" / "60_03.amc", N60)
-    shutil.copy(salsa_dir / "60.asf", d / "amc" / "60.asf")
-    (d / "broken.csv").write_text("time,head_px,foo\n0,1,2\n")
-    text = (d / "sub" / "b.bvh").read_text()
-    (d / "sub" / "trunc.bvh").write_text(text[:len(text) // 50])
-    trim_amc(salsa_dir / "61_09.amc", d / "noasf" / "61_09.amc", 50)
-    (d / "empty.csv").write_text("")
-    (d / "notes.txt").write_text("not a take")
-    return d
+    return make_takes(tmp_path_factory.mktemp("takes"), salsa_dir)
 
 
 @pytest.fixture(scope="module")

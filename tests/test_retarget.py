@@ -36,14 +36,12 @@ import numpy as np
 import pytest
 
 from conftest import ASSETS, MODELS, SALSA
+from helpers import CM, SECONDS, SRC_POINTS, START, apose_rig, target_rig_from_bones
 from dancing_points_addon.formats import gltf_meshopt
 from dancing_points_addon import retarget as rt
 from dancing_points_addon.retarget.solver import interp_poly
 
 AVATARS = {"leader": "White_M_1_Casual.glb", "follower": "White_F_1_Casual.glb"}
-# The take: seconds 10-15 of CMU salsa 60_10 (the dancers hold hands in it).
-START, SECONDS = 10.0, 5.0
-CM = 1e-2
 
 
 # --------------------------------------------------------------------------- bpy-free
@@ -177,60 +175,13 @@ def test_meshopt_glb_decodes_to_valid_geometry(tmp_path):
     assert np.abs(np.linalg.norm(raw, axis=1) - 1).max() < 0.03
 
 
-def _apose_rig():
-    """A rig in another convention and rest pose (Unreal names, A-pose, facing
-    +Y in armature space, arbitrary rolls): ``(joints, bones)`` where bones are
-    ``(name, parent, head, tail, roll)`` in metres."""
-    s = np.sqrt(0.5)
-    bones = [("root", None, (0, 0, 0), (0, 0.2, 0), 0.0),
-             ("pelvis", "root", (0, 0, 0.88), (0, 0, 0.98), 1.1),
-             ("spine_01", "pelvis", (0, 0, 0.98), (0, 0.01, 1.09), 0.3),
-             ("spine_02", "spine_01", (0, 0.01, 1.09), (0, 0.01, 1.20), -0.7),
-             ("spine_03", "spine_02", (0, 0.01, 1.20), (0, 0, 1.32), 2.0),
-             ("neck_01", "spine_03", (0, 0, 1.32), (0, 0.02, 1.47), 0.0),
-             ("head", "neck_01", (0, 0.02, 1.47), (0, 0.02, 1.64), 0.5)]
-    for sg, side in ((-1, "l"), (1, "r")):
-        x = sg  # facing +Y: the left side is -X
-        sh = np.array([0.17 * x, 0.0, 1.30])
-        d = np.array([s * x, 0.0, -s])
-        el, wr, hd = sh + 0.30 * d, sh + 0.57 * d, sh + 0.65 * d
-        bones += [("clavicle_" + side, "spine_03", (0.03 * x, 0, 1.29), tuple(sh), 0.4 * x),
-                  ("upperarm_" + side, "clavicle_" + side, tuple(sh), tuple(el), 1.3 * x),
-                  ("upperarm_twist_01_" + side, "upperarm_" + side, tuple((sh + el) / 2), tuple(el), 0.0),
-                  ("lowerarm_" + side, "upperarm_" + side, tuple(el), tuple(wr), -0.9),
-                  ("hand_" + side, "lowerarm_" + side, tuple(wr), tuple(hd), 2.5),
-                  ("index_01_" + side, "hand_" + side, tuple(hd), tuple(hd + 0.04 * d), 0.0),
-                  ("thigh_" + side, "pelvis", (0.09 * x, 0, 0.86), (0.09 * x, 0, 0.465), 0.8 * x),
-                  ("calf_" + side, "thigh_" + side, (0.09 * x, 0, 0.465), (0.09 * x, 0, 0.08), -0.4),
-                  ("foot_" + side, "calf_" + side, (0.09 * x, 0, 0.08), (0.09 * x, 0.12, 0.03), 3.0),
-                  ("ball_" + side, "foot_" + side, (0.09 * x, 0.12, 0.03), (0.09 * x, 0.18, 0.03), 0.0)]
-    return bones
-
-
 def _apose_target():
-    """:func:`_apose_rig` as a :class:`TargetRig` (rest matrices with the given
+    """:func:`apose_rig` as a :class:`TargetRig` (rest matrices with the given
     rolls; the object turned 90 degrees about Z and moved)."""
-    bones = _apose_rig()
-    names = [b[0] for b in bones]
-    parents = [names.index(b[1]) if b[1] else -1 for b in bones]
-    rest = []
-    for _, _, h, t, roll in bones:
-        y = np.subtract(t, h) / np.linalg.norm(np.subtract(t, h))
-        ref = np.array([0.0, 0.0, 1.0]) if abs(y[2]) < 0.9 else np.array([0.0, -1.0, 0.0])
-        x = np.cross(y, ref)
-        x /= np.linalg.norm(x)
-        z = np.cross(x, y)
-        c, s_ = np.cos(roll), np.sin(roll)
-        x, z = c * x + s_ * z, -s_ * x + c * z
-        m = np.eye(4)
-        m[:3, :3] = np.stack([x, y, z], axis=1)
-        m[:3, 3] = h
-        rest.append(m)
-    lengths = [np.linalg.norm(np.subtract(t, h)) for _, _, h, t, _ in bones]
     world = np.eye(4)
     world[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # turned 90 degrees
     world[:3, 3] = (1.5, -0.5, 0.0)
-    return rt.TargetRig(names, parents, np.array(rest), lengths, matrix_world=world)
+    return target_rig_from_bones(apose_rig(), world)
 
 
 def _rest_source():
@@ -327,12 +278,13 @@ except ImportError:  # the bpy-free tests above still run
 if bpy is not None:
     import blender_scene_util as bsu
     from ext_util import import_from_extension
+    from retarget_util import check_rig, evaluate, points, reference
 
 
 def _build_apose_rig(name="UE Dancer", size=1.0, modes=('QUATERNION', 'XYZ', 'ZXY')):
-    """The :func:`_apose_rig` (scaled by ``size``) as a Blender armature with a
+    """The :func:`apose_rig` (scaled by ``size``) as a Blender armature with a
     skinned box body, bones in the rotation ``modes`` in turn."""
-    bones = [(n, p, tuple(size * np.array(h)), tuple(size * np.array(t)), r) for n, p, h, t, r in _apose_rig()]
+    bones = [(n, p, tuple(size * np.array(h)), tuple(size * np.array(t)), r) for n, p, h, t, r in apose_rig()]
     arm = bpy.data.armatures.new(name)
     obj = bpy.data.objects.new(name, arm)
     bpy.context.scene.collection.objects.link(obj)
@@ -387,14 +339,6 @@ def _import_avatar(path, tmpdir):
     return arm, max(meshes, key=lambda o: len(o.data.vertices))
 
 
-def _reference(arm):
-    """Rest data and the reference pose (world) of a rig before retargeting."""
-    names = [b.name for b in arm.data.bones]
-    mw = np.array(arm.matrix_world)
-    return {"rest": {n: np.array(arm.data.bones[n].matrix_local) for n in names},
-            "world": {n: mw @ np.array(arm.pose.bones[n].matrix) for n in names}}
-
-
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     if bpy is None:
@@ -417,7 +361,7 @@ def scene(tmp_path_factory):
     duet = next(c for c in bpy.data.collections if c.dancing_points.kind == 'DUET')
     dp = import_from_extension("operators.retarget").duet_armatures(duet)
     avatars = {role: _import_avatar(ASSETS / f, d) for role, f in AVATARS.items()}
-    refs = {role: _reference(a) for role, (a, _) in avatars.items()}
+    refs = {role: reference(a) for role, (a, _) in avatars.items()}
     lead = avatars["leader"][0]
     t0 = time.perf_counter()
     assert bpy.ops.dancing_points.retarget_duet(duet=duet.name, leader_target=lead.name,
@@ -426,7 +370,7 @@ def scene(tmp_path_factory):
     ue = {"leader": _build_apose_rig("UE Leader", 1.04), "follower": _build_apose_rig("UE Follower", 0.95,
                                                                                    ('ZXY', 'QUATERNION', 'YZX'))}
     ue["follower"].location = (-1.0, 2.0, 0.0)
-    ue_ref = {r: _reference(o) for r, o in ue.items()}
+    ue_ref = {r: reference(o) for r, o in ue.items()}
     # The built follower already has an action of its own: it must survive untouched.
     compat = bsu.compat()
     old, slot = compat.new_action_for(ue["follower"], "Users Own Action")
@@ -440,156 +384,18 @@ def scene(tmp_path_factory):
     frames = bsu.fcurve_keys(dp["leader"], 'pose.bones["root"].location', 0)[0].astype(int)
     # The duet's centre (hip joints' midpoint, both source dancers, all frames): the
     # point about which positions are normalised by height.
-    W = _evaluate([dp["leader"], dp["follower"]], frames)
-    centre = np.mean([_points(W[a.name], [pb.name for pb in a.pose.bones], SRC_POINTS, tails=True,
+    W = evaluate([dp["leader"], dp["follower"]], frames)
+    centre = np.mean([points(W[a.name], [pb.name for pb in a.pose.bones], SRC_POINTS, tails=True,
                               lengths={b.name: b.length for b in a.data.bones})["hips"][:, :2].mean(0)
                       for a in dp.values()], axis=0)
     return {"duet": duet, "dp": dp, "avatars": avatars, "refs": refs, "ue": ue, "ue_ref": ue_ref, "frames": frames,
             "dir": d, "centre": centre}
 
 
-# Landmarks: source DP bone whose tail it is / target bone whose head it is, per convention.
-SRC_POINTS = {"lhip": "lhipjoint", "rhip": "rhipjoint", "head": "upperneck", "lwrist": "lwrist",
-              "rwrist": "rwrist", "lankle": "ltibia", "rankle": "rtibia", "lball": "lfoot", "rball": "rfoot"}
-TGT_POINTS = {
-    "mixamo": {"lhip": "LeftUpLeg", "rhip": "RightUpLeg", "head": "Head", "lwrist": "LeftHand",
-               "rwrist": "RightHand", "lankle": "LeftFoot", "rankle": "RightFoot", "lball": "LeftToeBase",
-               "rball": "RightToeBase"},
-    "unreal": {"lhip": "thigh_l", "rhip": "thigh_r", "head": "head", "lwrist": "hand_l", "rwrist": "hand_r",
-               "lankle": "foot_l", "rankle": "foot_r", "lball": "ball_l", "rball": "ball_r"},
-}
-
-
-def _evaluate(objs, frames):
-    """Blender-evaluated world matrices ``{obj name: (T, B, 4, 4)}`` of armatures'
-    pose bones at ``frames``, and bone names."""
-    scene = bpy.context.scene
-    out = {o.name: np.empty((len(frames), len(o.pose.bones), 4, 4)) for o in objs}
-    for i, f in enumerate(frames):
-        scene.frame_set(int(f))
-        for o in objs:
-            mw = np.array(o.matrix_world)
-            for j, pb in enumerate(o.pose.bones):
-                out[o.name][i, j] = mw @ np.array(pb.matrix)
-    return out
-
-
-def _points(W, names, table, tails=False, lengths=None):
-    idx = {n: i for i, n in enumerate(names)}
-    out = {}
-    for key, bone in table.items():
-        m = W[:, idx[bone]]
-        if tails:
-            y = np.array([0.0, lengths[bone], 0.0, 1.0])
-            out[key] = np.einsum("tij,j->ti", m, y)[:, :3]
-        else:
-            out[key] = m[:, :3, 3]
-    out["hips"] = 0.5 * (out.pop("lhip") + out.pop("rhip"))
-    return out
-
-
-def _source_height(arm, ankles):
-    """Standing height of the skull base of a DP armature: ankle floor level + leg + rest torso."""
-    b = arm.data.bones
-    leg = np.mean([b[s + "femur"].length + b[s + "tibia"].length for s in "lr"])
-    hip = 0.5 * (np.array(b["lhipjoint"].tail_local) + np.array(b["rhipjoint"].tail_local))
-    skull = np.array(b["upperneck"].tail_local)
-    floor = float(np.mean(np.percentile(ankles[..., 2], 5, axis=0)))
-    return floor + leg + (skull[2] - hip[2])
-
-
-def _check_rig(sc, role, target, ref, convention, label):
-    frames = sc["frames"]
-    src = sc["dp"][role]
-    W = _evaluate([src, target], frames)
-    s_names = [pb.name for pb in src.pose.bones]
-    t_names = [pb.name for pb in target.pose.bones]
-    sp_blender = _points(W[src.name], s_names, SRC_POINTS, tails=True,
-                         lengths={n: src.data.bones[n].length for n in s_names})
-    tp = _points(W[target.name], t_names, TGT_POINTS[convention])
-    # The source as the retarget reads it (its action's keys, SPEC positions): the
-    # contacts are thresholds, so both sides must see the very same numbers. It is
-    # Blender's evaluation of the source to well under a millimetre.
-    rmod = import_from_extension("operators.retarget")
-    _, pos, rot, _, mat = rmod.source_motion(src)
-    sp = rt.source_landmarks(rt.source_world(pos, rot, mat)[0])
-    sp = {k: sp[k] for k in sp_blender}
-    worst = max(np.abs(sp[k] - sp_blender[k]).max() for k in sp)
-    assert worst < 1e-3, worst
-    ankles = np.stack([sp["lankle"], sp["rankle"]], 1)
-    Hs = _source_height(src, ankles)
-    tgt = TGT_POINTS[convention]
-    Ht = float(ref["world"][tgt["head"]][2, 3])  # skull base, standing reference, floor z=0
-    print(f"\n[{label}] {len(frames)} frames; height (skull base) source {Hs:.3f} m, target {Ht:.3f} m")
-    # 1. Landmarks follow the source after normalising by height: horizontally about the
-    # duet's centre, vertically above the floor, times Hs / Ht (errors at the source's size).
-    # "standing-relative": the hips' and ankles' heights counted from their own standing
-    # height, which differs between rigs by where they put these joints and by their
-    # leg-to-height proportion (the pelvis height follows the leg length by design).
-    c = np.append(sc["centre"], 0.0)
-    a_floor = float(np.mean(np.percentile(ankles[..., 2], 5, axis=0)))
-    b = src.data.bones
-    stand_s = {"hips": a_floor + np.mean([b[x + "femur"].length + b[x + "tibia"].length for x in "lr"]),
-               "lankle": a_floor, "rankle": a_floor}
-    stand_t = {"hips": 0.5 * (ref["world"][tgt["lhip"]][2, 3] + ref["world"][tgt["rhip"]][2, 3]),
-               "lankle": ref["world"][tgt["lankle"]][2, 3], "rankle": ref["world"][tgt["rankle"]][2, 3]}
-    groups = {"hips": ["hips"], "hands": ["lwrist", "rwrist"], "feet": ["lankle", "rankle"], "head": ["head"]}
-    means, raw, horizontal = {}, {}, {}
-    for g, keys in groups.items():
-        e_abs, e_rel, e_hor = [], [], []
-        for k in keys:
-            d = (tp[k] - c) * (Hs / Ht) - (sp[k] - c)
-            e_abs.append(np.linalg.norm(d, axis=-1))
-            e_hor.append(np.linalg.norm(d[:, :2], axis=-1))
-            d[:, 2] -= stand_t.get(k, 0.0) * (Hs / Ht) - stand_s.get(k, 0.0)
-            e_rel.append(np.linalg.norm(d, axis=-1))
-        e_abs, e_rel, e_hor = np.concatenate(e_abs), np.concatenate(e_rel), np.concatenate(e_hor)
-        raw[g], means[g], horizontal[g] = e_abs.mean(), e_rel.mean(), e_hor.mean()
-        print(f"  {g:5s}: normalised position error mean {e_abs.mean() / CM:.2f} cm (max {e_abs.max() / CM:.2f}); "
-              f"standing-relative mean {e_rel.mean() / CM:.2f} cm (max {e_rel.max() / CM:.2f}); "
-              f"horizontal mean {e_hor.mean() / CM:.2f} cm")
-    # Horizontally nothing is measured from a standing height: there the plain
-    # height-normalised error must be under 3 cm too.
-    assert max(horizontal.values()) < 3 * CM, horizontal
-    # 2. No foot point slides while in contact: the source's foot points are in contact
-    # where they are planted (SPEC §6 contact — low and slow — and within 2 cm of where the
-    # contact began; a foot pivoting on its ball or gliding is low and slow but not planted).
-    # Also reported: the same over the SPEC §6 contacts alone.
-    feet = ("lankle", "lball", "rankle", "rball")
-    fp = np.stack([sp[k] for k in feet], 1)
-    spec = rt.detect_contacts(fp, fps=30.0)
-    results = {}
-    for label_c, contact in (("planted", rt.planted(spec, fp)), ("SPEC-only", spec)):
-        slide_t, slide_s = [0.0], [0.0]
-        for j, k in enumerate(feet):
-            c = contact[:, j]
-            t = 0
-            while t < len(c):
-                if not c[t]:
-                    t += 1
-                    continue
-                s0 = t
-                while t < len(c) and c[t]:
-                    t += 1
-                slide_t.append(np.linalg.norm(tp[k][s0:t, :2] - tp[k][s0, :2], axis=-1).max())
-                slide_s.append(np.linalg.norm(sp[k][s0:t, :2] - sp[k][s0, :2], axis=-1).max())
-        results[label_c] = max(slide_t)
-        print(f"  {label_c} contacts: {contact.mean() * 100:.0f}% of foot-point frames, {len(slide_t) - 1} runs; "
-              f"largest slide target {max(slide_t) / CM:.2f} cm (source {max(slide_s) / CM:.2f} cm)")
-    slide_t = [results["planted"]]
-    # 3. No bone flips.
-    steps = rt.rotation_steps_deg(W[target.name])
-    print(f"  largest frame-to-frame bone rotation {steps.max():.1f} deg")
-    # 4. Rest pose untouched.
-    for n, m in ref["rest"].items():
-        np.testing.assert_allclose(np.array(target.data.bones[n].matrix_local), m, atol=1e-6)
-    return means, max(slide_t), steps.max()
-
-
 @pytest.mark.parametrize("role", ["leader", "follower"])
 def test_avatars_follow_the_duet(scene, role):
     arm, body = scene["avatars"][role]
-    means, slide, step = _check_rig(scene, role, arm, scene["refs"][role], "mixamo", f"avatar {role}")
+    means, slide, step = check_rig(scene, role, arm, scene["refs"][role], "mixamo", f"avatar {role}")
     assert max(means.values()) < 3 * CM, means
     assert slide < 1 * CM
     assert step < 90.0
@@ -663,7 +469,7 @@ def test_hands_that_hold_stay_together(scene):
     frames = scene["frames"]
     dp = scene["dp"]
     (la, _), (fa, _) = scene["avatars"]["leader"], scene["avatars"]["follower"]
-    W = _evaluate([dp["leader"], dp["follower"], la, fa], frames)
+    W = evaluate([dp["leader"], dp["follower"], la, fa], frames)
 
     _assert_held_hands_meet(W, (dp["leader"], dp["follower"]), (la, fa), ("LeftHand", "RightHand"), "hand holds")
 
@@ -671,7 +477,7 @@ def test_hands_that_hold_stay_together(scene):
 @pytest.mark.parametrize("role", ["leader", "follower"])
 def test_apose_rigs_of_another_convention(scene, role):
     ue = scene["ue"][role]
-    means, slide, step = _check_rig(scene, role, ue, scene["ue_ref"][role], "unreal",
+    means, slide, step = check_rig(scene, role, ue, scene["ue_ref"][role], "unreal",
                                     f"built Unreal A-pose rig, {role}")
     assert max(means.values()) < 3 * CM, means
     assert slide < 1 * CM
@@ -691,7 +497,7 @@ def test_single_dancer_closes_hands_on_the_partners_rig(scene):
     dp, ue = scene["dp"], scene["ue"]
     assert bpy.ops.dancing_points.retarget(source=dp["follower"].name, target=ue["follower"].name) == {'FINISHED'}
     frames = scene["frames"]
-    W = _evaluate([dp["leader"], dp["follower"], ue["leader"], ue["follower"]], frames)
+    W = evaluate([dp["leader"], dp["follower"], ue["leader"], ue["follower"]], frames)
 
     _assert_held_hands_meet(W, (dp["leader"], dp["follower"]), (ue["leader"], ue["follower"]), ("hand_l", "hand_r"),
                             "single-dancer retarget")

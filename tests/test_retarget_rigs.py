@@ -22,11 +22,11 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, SALSA
+from helpers import SECONDS, SRC_POINTS, START, TGT_POINTS, apose_rig, target_rig_from_bones
 from dancing_points_addon import retarget as rt
 from dancing_points_addon.retarget import rigify as rgf
 from dancing_points_addon.retarget.structure import structural_mapping
 
-import test_retarget as tr
 
 CM = 1e-2
 
@@ -62,7 +62,7 @@ def _madeup_bones():
     """The Unreal-like A-pose rig of ``test_retarget`` (facing +Y, other rolls) with
     made-up names, hip bones between the pelvis and the thighs and a head end
     bone: nothing a preset knows."""
-    bones = tr._apose_rig()
+    bones = apose_rig()
     out = []
     for n, p, h, t, r in bones:
         if n.startswith("thigh_"):
@@ -78,23 +78,6 @@ def _madeup_bones():
     for i, (n, *_rest) in enumerate(out):
         rename[n] = "{:s}_{:02d}".format(words[int(rng.integers(len(words)))], i)
     return [(rename[n], rename[p] if p else None, h, t, r) for n, p, h, t, r in out], rename
-
-
-def _target_from_bones(bones, world=None):
-    names = [b[0] for b in bones]
-    parents = [names.index(b[1]) if b[1] else -1 for b in bones]
-    rest = []
-    for _, _, h, t, _ in bones:
-        y = np.subtract(t, h) / np.linalg.norm(np.subtract(t, h))
-        ref = np.array([0.0, 0.0, 1.0]) if abs(y[2]) < 0.9 else np.array([0.0, -1.0, 0.0])
-        x = np.cross(y, ref)
-        x /= np.linalg.norm(x)
-        m = np.eye(4)
-        m[:3, :3] = np.stack([x, y, np.cross(x, y)], axis=1)
-        m[:3, 3] = h
-        rest.append(m)
-    lengths = [np.linalg.norm(np.subtract(t, h)) for _, _, h, t, _ in bones]
-    return rt.TargetRig(names, parents, np.array(rest), lengths, matrix_world=world)
 
 
 VRM1 = {"J_Bip_C_Hips": "hips", "J_Bip_C_Spine": "spine", "J_Bip_C_Chest": "chest",
@@ -141,7 +124,7 @@ def test_made_up_names_mapped_by_structure():
     bones, rename = _madeup_bones()
     world = np.eye(4)
     world[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
-    rig = _target_from_bones(bones, world)
+    rig = target_rig_from_bones(bones, world)
     assert rt.auto_mapping(rig.names)[0] == {}
     mapping, roles = structural_mapping(rig)
     want, _ = rt.auto_mapping(list(rename))
@@ -151,12 +134,12 @@ def test_made_up_names_mapped_by_structure():
     assert roles["lthigh"] == rename["thigh_l"] and roles["rhand"] == rename["hand_r"]
     # VRM geometry facing -Y (left at +X), names stripped: sides right as well.
     vb = _vrm_bones({n: "b{:02d}".format(i) for i, (n, *_r) in enumerate(_vrm_bones())})
-    m, roles = structural_mapping(_target_from_bones(vb))
+    m, roles = structural_mapping(target_rig_from_bones(vb))
     ref = {b[0]: b for b in vb}
     assert ref[roles["lhand"]][2][0] > 0 and ref[roles["rthigh"]][2][0] < 0
     assert m[roles["spine3"]] == "thorax" and m[roles["neck1"]] == "lowerneck+upperneck"
     with pytest.raises(rt.RetargetError, match="no pelvis found"):
-        structural_mapping(_target_from_bones(vb[:7]))
+        structural_mapping(target_rig_from_bones(vb[:7]))
 
 
 # --------------------------------------------------------------------------- in Blender
@@ -169,12 +152,13 @@ except ImportError:
 if bpy is not None:
     import blender_scene_util as bsu
     from ext_util import import_from_extension
+    from retarget_util import check_rig, evaluate, points, reference
 
 METARIG_POINTS = {"lhip": "thigh.L", "rhip": "thigh.R", "head": "spine.006", "lwrist": "hand.L", "rwrist": "hand.R",
                   "lankle": "foot.L", "rankle": "foot.R", "lball": "toe.L", "rball": "toe.R"}
-tr.TGT_POINTS.setdefault("rigify_metarig", METARIG_POINTS)
-tr.TGT_POINTS.setdefault("rigify_def", {k: "DEF-" + v for k, v in METARIG_POINTS.items()})
-tr.TGT_POINTS.setdefault("vrm0", {"lhip": "J_Bip_L_UpperLeg", "rhip": "J_Bip_R_UpperLeg", "head": "J_Bip_C_Head",
+TGT_POINTS.setdefault("rigify_metarig", METARIG_POINTS)
+TGT_POINTS.setdefault("rigify_def", {k: "DEF-" + v for k, v in METARIG_POINTS.items()})
+TGT_POINTS.setdefault("vrm0", {"lhip": "J_Bip_L_UpperLeg", "rhip": "J_Bip_R_UpperLeg", "head": "J_Bip_C_Head",
                                   "lwrist": "J_Bip_L_Hand", "rwrist": "J_Bip_R_Hand", "lankle": "J_Bip_L_Foot",
                                   "rankle": "J_Bip_R_Foot", "lball": "J_Bip_L_ToeBase", "rball": "J_Bip_R_ToeBase"})
 
@@ -191,7 +175,7 @@ def rigs(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("dp_retarget_rigs")
     m = load_amc(SALSA / "60_10.amc")
-    i0, i1 = int(tr.START * m.fps), int((tr.START + tr.SECONDS) * m.fps)
+    i0, i1 = int(START * m.fps), int((START + SECONDS) * m.fps)
     m = Motion(m.positions[i0:i1], m.rotations[i0:i1], m.fps, m.bone_vectors, m.source, dict(m.meta))
     csv = d / "salsa_5s.csv"
     write_take(csv, take_from_motion(m))
@@ -231,7 +215,7 @@ def rigs(tmp_path_factory):
                                             for n, p, h, t, r in madeup], ('ZXY', 'QUATERNION'),
                              (-1.5, -0.5, 0.0), -np.pi / 2)
     out["rigs"]["vrm"], out["rigs"]["odd"] = vrm, odd
-    out["refs"] = {k: tr._reference(o) for k, o in out["rigs"].items()}
+    out["refs"] = {k: reference(o) for k, o in out["rigs"].items()}
     # The duet onto the generated Rigify rig (leader) and the made-up rig (follower);
     # then the leader alone onto the meta-rig and the VRM rig (their hands close onto
     # the follower's rig). The meta-rig's proportions (long legs: leg / skull-base
@@ -251,8 +235,8 @@ def rigs(tmp_path_factory):
             out["times"][kind] = time.perf_counter() - t0
     print("\ntimes (s): " + ", ".join("{:s} {:.2f}".format(k, v) for k, v in out["times"].items()))
     frames = bsu.fcurve_keys(dp["leader"], 'pose.bones["root"].location', 0)[0].astype(int)
-    W = tr._evaluate([dp["leader"], dp["follower"]], frames)
-    out["centre"] = np.mean([tr._points(W[a.name], [pb.name for pb in a.pose.bones], tr.SRC_POINTS, tails=True,
+    W = evaluate([dp["leader"], dp["follower"]], frames)
+    out["centre"] = np.mean([points(W[a.name], [pb.name for pb in a.pose.bones], SRC_POINTS, tails=True,
                                         lengths={b.name: b.length for b in a.data.bones})["hips"][:, :2].mean(0)
                              for a in dp.values()], axis=0)
     out["frames"] = frames
@@ -265,7 +249,7 @@ ROLES = {"metarig": "leader", "rigify": "leader", "vrm": "leader", "odd": "follo
 def _deform_displacement(obj, frames):
     """Largest displacement (m) over the take of the deform bones' heads (median over the bones)."""
     names = [b.name for b in obj.data.bones if b.use_deform]
-    W = tr._evaluate([obj], frames)[obj.name]
+    W = evaluate([obj], frames)[obj.name]
     idx = [i for i, pb in enumerate(obj.pose.bones) if pb.name in set(names)]
     heads = W[:, idx, :3, 3]
     return float(np.median(np.linalg.norm(heads - heads[:1], axis=-1).max(0)))
@@ -284,11 +268,11 @@ def test_rig_follows_the_duet(rigs, kind):
         for bone, chain in m.items():
             inv.setdefault(chain, bone)
         conv = "odd"
-        tr.TGT_POINTS[conv] = {"lhip": inv["lfemur"], "rhip": inv["rfemur"], "head": inv["head"],
+        TGT_POINTS[conv] = {"lhip": inv["lfemur"], "rhip": inv["rfemur"], "head": inv["head"],
                                "lwrist": inv["lhand"], "rwrist": inv["rhand"], "lankle": inv["lfoot"],
                                "rankle": inv["rfoot"], "lball": inv["ltoes"], "rball": inv["rtoes"]}
         assert obj.get("dp_retarget_convention") == "structure"
-    means, slide, step = tr._check_rig(rigs, ROLES[kind], obj, ref, conv, "{:s} rig, {:s}".format(kind, ROLES[kind]))
+    means, slide, step = check_rig(rigs, ROLES[kind], obj, ref, conv, "{:s} rig, {:s}".format(kind, ROLES[kind]))
     moved = _deform_displacement(obj, rigs["frames"])
     print(f"  deform bones move {moved / CM:.1f} cm over the take (median over the bones of the largest)")
     assert max(means[k] for k in ("hands", "feet", "head")) < 3 * CM, means
@@ -316,17 +300,17 @@ def test_rigify_rig_keys_its_controls_in_fk(rigs):
     # Switching the limbs back to IK keeps the pose (the IK controls are keyed to it).
     compat = bsu.compat()
     action, slot = compat.assigned_action(rig)
-    lm = tr.TGT_POINTS["rigify_def"]
+    lm = TGT_POINTS["rigify_def"]
     names = [pb.name for pb in rig.pose.bones]
     check = [frames[0], frames[len(frames) // 2]]
-    fk = tr._evaluate([rig], check)[rig.name]
+    fk = evaluate([rig], check)[rig.name]
     fcs = [compat.find_fcurve(action, slot, 'pose.bones["{:s}"]["{:s}"]'.format(b, p), 0) for b, p in rgf.IK_FK_PROPS]
     try:
         for fc in fcs:
             fc.mute = True
         for b, p in rgf.IK_FK_PROPS:
             rig.pose.bones[b][p] = rgf.IK_VALUE
-        ik = tr._evaluate([rig], check)[rig.name]
+        ik = evaluate([rig], check)[rig.name]
     finally:
         for fc in fcs:
             fc.mute = False
@@ -409,7 +393,7 @@ def test_batch_takes_rigify_and_made_up_rigs(rigs, tmp_path):
     not put in the scene."""
     if "rigify" not in rigs["rigs"]:
         pytest.skip(rigs.get("rigify_missing", "rig not built"))
-    from test_batch import read_report, run_batch, run_bpy_script
+    from helpers import read_report, run_batch, run_bpy_script
 
     files = {}
     for kind in ("rigify", "odd"):  # as they are: retargeted once already (stored mapping and reference pose)

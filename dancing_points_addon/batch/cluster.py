@@ -668,11 +668,7 @@ class ClusterBatch:
 
     # -- results ------------------------------------------------------------------------
     def _finish(self, task, status, error=None, frames=None, seconds=None):
-        task.status, task.error = status, error
-        if frames is not None:
-            task.frames = int(frames)
-        task.seconds = seconds if seconds is not None else (
-            time.perf_counter() - task.started if task.started else None)
+        task.finish(status, error, frames, seconds)
         if self.progress is not None:
             line = result_line(task, self.out_dir)
             died = max(0, self.attempts.get(task.index, 0) - 1)

@@ -25,6 +25,7 @@ import contextlib
 import os
 import re
 import shutil
+import time
 
 from ..errors import InputError
 
@@ -187,6 +188,14 @@ class Task:
     @property
     def name(self):
         return os.path.basename(self.input)
+
+    def finish(self, status, error=None, frames=None, seconds=None):
+        """Record the outcome; ``seconds`` default: since :attr:`started`."""
+        self.status, self.error = status, error
+        if frames is not None:
+            self.frames = int(frames)
+        self.seconds = seconds if seconds is not None else (
+            time.perf_counter() - self.started if self.started else None)
 
     def record(self):
         return {"input": self.input, "output": self.outputs[0] if self.outputs else None,

@@ -191,11 +191,7 @@ class Batch:
         w.send(self._job(task))
 
     def _finish(self, task, status, error=None, frames=None, seconds=None):
-        task.status, task.error = status, error
-        if frames is not None:
-            task.frames = int(frames)
-        task.seconds = seconds if seconds is not None else (
-            time.perf_counter() - task.started if task.started else None)
+        task.finish(status, error, frames, seconds)
         if self.progress is not None:
             self.progress.result(result_line(task, self.out_dir))
         self.finished += 1
