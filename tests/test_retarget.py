@@ -203,7 +203,7 @@ def test_alignment_of_an_apose_rig_numpy():
     mapping, conv = rt.auto_mapping(names)
     assert conv == "unreal"
     bv, ends = _rest_source()
-    ret = rt.Retargeter(bv, rig, mapping, foot_lock=False, match_hands=False, match_head=False)
+    ret = rt.Retargeter(bv, rig, mapping, foot_lock=False, match_hands=False, match_head=False, match_feet=False)
     pos = ends[None]
     rot = np.broadcast_to(np.eye(3), (1, 31, 3, 3)).copy()
     pose = ret.solve(pos, rot)

@@ -163,6 +163,9 @@ TGT_POINTS.setdefault("vrm0", {"lhip": "J_Bip_L_UpperLeg", "rhip": "J_Bip_R_Uppe
                                   "rankle": "J_Bip_R_Foot", "lball": "J_Bip_L_ToeBase", "rball": "J_Bip_R_ToeBase"})
 
 
+ROLES = {"metarig": "leader", "rigify": "leader", "vrm": "leader", "odd": "follower", "metarig_follower": "follower"}
+
+
 @pytest.fixture(scope="module")
 def rigs(tmp_path_factory):
     if bpy is None:
@@ -202,6 +205,15 @@ def rigs(tmp_path_factory):
         rig.location = (1.0, -0.5, 0.0)
         bpy.context.view_layer.update()
         out["rigs"]["metarig"], out["rigs"]["rigify"] = meta, rig
+        # The follower onto a second meta-rig (long legs for her size), scaled to her
+        # 1.66 m like the made-up rig below, so that held hands meet.
+        bpy.ops.object.armature_human_metarig_add()
+        meta_f = bpy.context.active_object
+        meta_f.name = "Human Metarig Follower"
+        meta_f.location = (0.5, 1.5, 0.0)
+        meta_f.scale = (1.66 / 1.78,) * 3
+        bpy.context.view_layer.update()
+        out["rigs"]["metarig_follower"] = meta_f
     else:
         out["rigify_missing"] = "the bundled 'rigify' add-on is not available in this bpy build"
     # Sizes: the leader's rigs 1.78 m to the skull base (the meta-rig's), the
@@ -218,19 +230,16 @@ def rigs(tmp_path_factory):
     out["refs"] = {k: reference(o) for k, o in out["rigs"].items()}
     # The duet onto the generated Rigify rig (leader) and the made-up rig (follower);
     # then the leader alone onto the meta-rig and the VRM rig (their hands close onto
-    # the follower's rig). The meta-rig's proportions (long legs: leg / skull-base
-    # height 0.556, 0.57 for the VRM rig) suit the leader; on the smaller follower the
-    # feet land 3.4 cm (horizontal mean) off after normalising by height, since the
-    # pelvis follows the leg length (by design, as for every rig).
+    # the follower's rig), and the follower alone onto her meta-rig.
     t0 = time.perf_counter()
     lead = out["rigs"].get("rigify")
     assert bpy.ops.dancing_points.retarget_duet(duet=duet.name, leader_target=lead.name if lead else "",
                                                 follower_target=odd.name) == {'FINISHED'}
     out["times"]["duet rigify+odd" if lead else "odd"] = time.perf_counter() - t0
-    for kind in ("metarig", "vrm"):
+    for kind in ("metarig", "vrm", "metarig_follower"):
         if kind in out["rigs"]:
             t0 = time.perf_counter()
-            assert bpy.ops.dancing_points.retarget(source=dp["leader"].name,
+            assert bpy.ops.dancing_points.retarget(source=dp[ROLES[kind]].name,
                                                    target=out["rigs"][kind].name) == {'FINISHED'}
             out["times"][kind] = time.perf_counter() - t0
     print("\ntimes (s): " + ", ".join("{:s} {:.2f}".format(k, v) for k, v in out["times"].items()))
@@ -243,7 +252,6 @@ def rigs(tmp_path_factory):
     return out
 
 
-ROLES = {"metarig": "leader", "rigify": "leader", "vrm": "leader", "odd": "follower"}
 
 
 def _deform_displacement(obj, frames):
@@ -255,13 +263,14 @@ def _deform_displacement(obj, frames):
     return float(np.median(np.linalg.norm(heads - heads[:1], axis=-1).max(0)))
 
 
-@pytest.mark.parametrize("kind", ["metarig", "rigify", "vrm", "odd"])
+@pytest.mark.parametrize("kind", ["metarig", "rigify", "vrm", "odd", "metarig_follower"])
 def test_rig_follows_the_duet(rigs, kind):
     if kind not in rigs["rigs"]:
         pytest.skip(rigs.get("rigify_missing", "rig not built"))
     obj = rigs["rigs"][kind]
     ref = rigs["refs"][kind]
-    conv = {"metarig": "rigify_metarig", "rigify": "rigify_def", "vrm": "vrm0"}.get(kind)
+    conv = {"metarig": "rigify_metarig", "metarig_follower": "rigify_metarig", "rigify": "rigify_def",
+            "vrm": "vrm0"}.get(kind)
     if kind == "odd":  # its landmark bones, found by the structural mapping
         m = {i.target: i.source for i in obj.dp_retarget_map if i.source}
         inv = {}

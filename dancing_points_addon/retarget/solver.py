@@ -18,9 +18,12 @@ Rest-pose alignment (once per pair of rigs)
 Proportions
     Target positions come from forward kinematics of the target's own bone
     lengths. The pelvis (the midpoint of the hip joints) follows the source's,
-    scaled by ``k`` = target leg length / source leg length (thigh + shin)
-    horizontally about the duet's centre (:func:`.source.duet_origin`) and
-    vertically above the floor (each rig's ankle height above its floor kept).
+    horizontally about the duet's centre (:func:`.source.duet_origin`) by the
+    ratio of the head-point heights (the rigs' sizes), vertically above the
+    floor by ``k`` = target leg length / source leg length (thigh + shin; each
+    rig's ankle height above its floor kept). The ankles are put horizontally
+    where the source's are relative to the pelvis, scaled by the height ratio
+    (leg IK at the FK ankle's height), so the stride keeps the dancer's size.
     Planted feet are locked (:mod:`.contacts`). The head point and the wrists
     are then pulled to where the source's are relative to the pelvis, scaled by
     the ratio of the head-point heights: the spine and neck lean rigidly about
@@ -75,7 +78,7 @@ class Retargeter:
 
     def __init__(self, bone_vectors, target: TargetRig, mapping: dict, foot_lock: bool = True,
                  blend_frames: int = 6, match_hands: bool = True, match_head: bool = True,
-                 max_drift: float = 0.30, max_step_deg: float = 60.0, max_drop: float = 0.06):
+                 match_feet: bool = True, max_drift: float = 0.30, max_step_deg: float = 60.0, max_drop: float = 0.06):
         self.target = target
         self.max_drift = float(max_drift)
         self.max_drop = float(max_drop)
@@ -84,6 +87,7 @@ class Retargeter:
         self.foot_lock = bool(foot_lock)
         self.match_hands = bool(match_hands)
         self.match_head = bool(match_head)
+        self.match_feet = bool(match_feet)
         self.blend_frames = max(int(blend_frames), 1)
         self.bv = np.asarray(bone_vectors, dtype=np.float64)
         self.src_rest = bm.to_blender(rest_joints(self.bv))  # (31, 3) source armature, Blender axes
@@ -277,9 +281,14 @@ class Retargeter:
         tgt_ankle_h = np.mean([h for k, h in self.tgt_foot_height.items() if k.endswith("ankle") and h is not None]
                               or [src_ankle_h * self.scale])
         k = self.scale
+        self.src_height = self.source_height(src_ankle_h)
+        self.height_ratio = self.height / self.src_height
         anchor = np.empty_like(src_anchor)
         o = np.zeros(2) if origin is None else np.asarray(origin, dtype=np.float64)[:2]
-        anchor[:, :2] = o + k * (src_anchor[:, :2] - o)
+        # Horizontally by the height ratio (where the dancer is on the floor and
+        # relative to the partner, as everything above the pelvis); vertically by
+        # the leg length (how high a pelvis the legs carry).
+        anchor[:, :2] = o + self.height_ratio * (src_anchor[:, :2] - o)
         anchor[:, 2] = self.ground + tgt_ankle_h + k * (src_anchor[:, 2] - src_ground - src_ankle_h)
         rb = self.root_bone
         R_root = lin[:, rb] @ np.linalg.inv(lin0[rb])  # rotation applied to the pelvis
@@ -287,10 +296,10 @@ class Retargeter:
         pose = _Pose(lin, root_head, G, None)
         pose.W = self.fk(pose)
         self._Rw = Rw
-        self.src_height = self.source_height(src_ankle_h)
-        self.height_ratio = self.height / self.src_height
         pose.anchor, pose.src_anchor = anchor, src_anchor
         pose.src_ground = src_ground
+        if self.match_feet:
+            self.place_feet(pose, pts)
         if self.foot_lock:  # first: it may lower the pelvis
             if contacts is None:
                 src_feet = pts[:, FEET]
@@ -372,6 +381,29 @@ class Retargeter:
             pose.G[mask, b] = D[mask] @ pose.G[mask, b]
 
     # -- feet ---------------------------------------------------------------------
+    def place_feet(self, pose, pts):
+        """Put the ankles horizontally where the source's are relative to the
+        pelvis, scaled by the height ratio (as the head and the wrists; the leg
+        angles alone would scale the stride by the leg ratio): two-bone leg IK to
+        that point at the FK ankle's height, the foot's orientation kept."""
+        s = self.height_ratio
+        heads = pose.W[..., :3, 3]
+        for side in SIDES:
+            thigh, shin, foot = (self._bones_of(side + n) for n in ("femur", "tibia", "foot"))
+            if thigh is None or shin is None or foot is None:
+                continue
+            A = heads[:, foot[0]]
+            target = A.copy()
+            src = pts[:, JOINT_INDEX[side + "tibia"]]
+            target[:, :2] = pose.anchor[:, :2] + s * (src[:, :2] - pose.src_anchor[:, :2])
+            hip, knee = heads[:, thigh[0]], heads[:, shin[0]]
+            fwd = np.einsum("tij,j->ti", pose.G[:, thigh[0]], self._Rw @ SRC_FWD)
+            _, _, R1, R2 = two_bone_ik(hip, knee, A, target, knee + 0.1 * fwd)
+            every = np.ones(len(A), dtype=bool)
+            self._apply_delta(pose, thigh, R1, every)
+            self._apply_delta(pose, shin, R2, every)  # (the foot's orientation is its own: kept)
+        pose.W = self.fk(pose)
+
     def lock_feet(self, pose, contacts):
         """Lock the target's foot points where ``contacts (T, 4)`` (left ankle,
         left ball, right ankle, right ball) are on (:func:`foot_targets`): two-bone
