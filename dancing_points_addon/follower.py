@@ -74,6 +74,9 @@ class FollowerOptions:
     hold_gap: float = 0.07  # m, wrist-to-wrist distance of a hold
     hold_frames: int = 6  # blend in/out
     hold_smooth: float = 0.7  # exponential smoothing of the hold's pull on her wrist
+    hold_switch: float = 0.05  # m: a held hand changes partner when his other hand is this much closer
+    # (< 0: never while held; the hold ends when its partner is over hold_off away)
+    hold_soft: float = 0.05  # m: his two hands weighted by a softmax of distance / hold_soft (0: one partner)
     hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (0: exponential smoothing)
 
 
@@ -206,7 +209,13 @@ class HandHold:
     pairs is predicted close (under ``hold_on``; released over ``hold_off``),
     the follower's wrist of that pair is pulled by her arm IK to ``hold_gap``
     from the leader's wrist (the leader's wrist is his tracked hand) on the
-    side of her shoulder, blended in and out over ``hold_frames``. The pull
+    side of her shoulder, blended in and out over ``hold_frames``. Her hand's
+    partner is soft (``hold_soft``): his two wrists weighted by a softmax of
+    their predicted distances, so no discrete choice flips between his hands
+    on a millimetre of noise; a hard partner that stayed held while his other
+    hand was the close one dragged her arm across (a 112° forearm turn in one
+    frame) — with one partner, ``hold_switch`` changes it when the other hand
+    is clearly closer. The pull
     (her wrist's offset from where her tracker puts it) follows a critically
     damped spring of ``hold_spring`` Hz, so its acceleration is bounded and the
     arm does not jerk when a hold starts, ends or changes partner (the hold's
@@ -225,6 +234,7 @@ class HandHold:
         self.active = [False, False]
         self._offset = [None, None]
         self._velocity = [None, None]
+        self._soft = [None, None]
 
     def targets(self, leader_pos, follower_pos, pred_dist, arm_length):
         """Per follower hand a target (3,) or None. ``pred_dist (2, 2)``: the
@@ -235,8 +245,22 @@ class HandHold:
         for j in (0, 1):
             i = int(np.argmin(pred_dist[:, j]))
             d = float(pred_dist[i, j])
-            if self.active[j]:
-                self.active[j] = d < o.hold_off
+            if o.hold_soft > 0:
+                # soft partner: his two hands weighted by a softmax of their
+                # predicted distances (no discrete choice to flip on noise)
+                e = np.exp(-(pred_dist[:, j] - d) / o.hold_soft)
+                soft = e / e.sum()
+                ds = float(soft @ pred_dist[:, j])
+                self.active[j] = ds < (o.hold_off if self.active[j] else o.hold_on)
+                self._soft[j] = soft
+            elif self.active[j]:
+                # the hold stays with its partner while that one is close; the
+                # other of his hands takes over when clearly closer (the spring
+                # carries her wrist across)
+                dp = float(pred_dist[self.partner[j], j])
+                if o.hold_switch >= 0 and i != self.partner[j] and d < dp - o.hold_switch:
+                    self.partner[j], dp = i, d
+                self.active[j] = dp < o.hold_off
             else:
                 self.active[j] = d < o.hold_on
                 self.partner[j] = i
@@ -246,7 +270,10 @@ class HandHold:
                                           or float(np.abs(self._offset[j]).max()) < 1e-4):
                 self._offset[j] = self._velocity[j] = None
                 continue
-            lw = leader_pos[WRISTS[self.partner[j]]]
+            if o.hold_soft > 0:
+                lw = self._soft[j] @ leader_pos[list(WRISTS)]
+            else:
+                lw = leader_pos[WRISTS[self.partner[j]]]
             fw = follower_pos[WRISTS[j]]
             sh = follower_pos[self.SHOULDERS[j]]
             v = sh - lw

@@ -63,6 +63,10 @@ class Duet:
     follower_contacts: np.ndarray
     fps: float = F.FPS
     bone_vectors: dict | None = None  # each dancer's skeleton (rest bone vectors, output scale)
+    # The mapping network's 1 s predictions made at each frame (``Synthesizer(record_predictions=True)``):
+    # (T, 2 dancers, FUTURE frames t+1…, 3 tracked points, 3) world positions at the output scale,
+    # float32; None when not recorded. Not part of the SPEC §4 output (:meth:`arrays`).
+    predictions: np.ndarray | None = None
 
     @property
     def n_frames(self):
@@ -202,12 +206,17 @@ class Synthesizer:
     (:class:`~.follower.FollowerOptions`; None: the earlier path, her root
     pulled towards the raw prediction). Both dancers' next tracker step starts
     from the consistent skeleton pose of this one (pose recovery).
+    ``record_predictions``: keep each step's mapping prediction
+    (:attr:`last_prediction`, :attr:`Duet.predictions`) to show the method; it
+    changes no output.
     """
 
     def __init__(self, options: SynthesisOptions | None = None, nets: dict | None = None,
-                 follower: FollowerOptions | None = FollowerOptions()):
+                 follower: FollowerOptions | None = FollowerOptions(), record_predictions: bool = False):
         options = options or SynthesisOptions()
         self.options = options
+        self.record_predictions = bool(record_predictions)
+        self.last_prediction = None  # (2, FUTURE, 3, 3) float32 world, output scale (when recorded)
         if nets is None:
             nets = load_nets(options.models, options.threads)
         self.nets = nets
@@ -363,6 +372,9 @@ class Synthesizer:
         (l_roots, l_tr), (f_roots, f_tr) = F.decode_mapping(y, root[None])
         l_roots, l_tr, f_roots, f_tr = l_roots[0], l_tr[0], f_roots[0], f_tr[0]
         self.prev_leader_pred = (l_roots[0], l_tr[0])
+        if self.record_predictions:  # the raw mapping output, world, back at the output scale
+            pred = to_world(np.stack([l_tr, f_tr]), np.stack([l_roots, f_roots]))
+            self.last_prediction = (pred if s == 1.0 else pred * (1.0 / s)).astype(np.float32)
         placement = self._placement
         if placement is not None:
             f_roots, f_tr = placement.smooth(f_roots, f_tr)
@@ -484,15 +496,19 @@ class Synthesizer:
         out.update({k: np.empty((T, 31, 3, 3)) for k in ("lr", "fr")})
         out.update({k: np.empty((T, 4)) for k in ("lc", "fc")})
         valid = tk.valid
+        record = self.record_predictions
+        preds = np.empty((T, 2, F.FUTURE, 3, 3), dtype=np.float32) if record else None
         for t in range(T):
             a, b = self.step(tk.positions[t], tk.quats[t], valid[t])
+            if record:
+                preds[t] = self.last_prediction
             out["lp"][t], out["lr"][t], out["lc"][t] = a.positions, a.rotations, a.contacts
             out["fp"][t], out["fr"][t], out["fc"][t] = b.positions, b.rotations, b.contacts
             if progress is not None and (t % 30 == 0 or t == T - 1):
                 if progress(t + 1, T) is False:
                     raise KeyboardInterrupt("cancelled")
         return Duet(tk.time, out["lp"], out["lr"], out["lc"], out["fp"], out["fr"], out["fc"],
-                    bone_vectors=self.output_bone_vectors())
+                    bone_vectors=self.output_bone_vectors(), predictions=preds)
 
 
 def save_npz(duet: Duet, path) -> None:

@@ -7,8 +7,10 @@ Run from the checkout's root (the ``bpy`` module; the extension is enabled from
 a temporary user repository, as the tests do). Seconds 10-15 of CMU salsa take
 60_10 as a take -> ``synthesize`` -> ``retarget_duet`` onto White_M_1_Casual
 (leader) and White_F_1_Casual (follower), loaded by ``load_rig_file``; the
-default bodies hidden; the scene camera turned to the avatars' centre; frame 30
-rendered with ``render_preview`` (Workbench, 50 %: 960 x 540).
+default bodies hidden; a camera of its own ("Docs Camera", from the side the
+follow camera sees the couple from) framing the avatars' deformed meshes at
+frame 30 (``blender_math.frame_camera``); that frame rendered with
+``render_preview`` (Workbench, 50 %: 960 x 540), written as 8-bit RGB.
 """
 import os
 import shutil
@@ -20,6 +22,7 @@ sys.path[:0] = [os.path.join(ROOT, "tests"), ROOT]
 
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
+from mathutils import Matrix  # noqa: E402
 
 from ext_util import import_from_extension  # noqa: E402
 
@@ -28,6 +31,7 @@ FRAME = 30
 
 
 def main(models=os.path.join(ROOT, "models")):
+    from dancing_points_addon import blender_math as bm
     from dancing_points_addon.formats.asf_amc import load_amc
     from dancing_points_addon.skeleton import Motion
     from dancing_points_addon.formats.take import take_from_motion, write_take
@@ -51,7 +55,7 @@ def main(models=os.path.join(ROOT, "models")):
         rmod.hide_duet_bodies(duet)
         scene = bpy.context.scene
         scene.frame_set(FRAME)
-        # aim the camera at the centre of the avatars' deformed meshes at that frame
+        # the avatars' deformed meshes at that frame, world space
         deps = bpy.context.evaluated_depsgraph_get()
         pts = []
         for o in scene.objects:
@@ -61,16 +65,36 @@ def main(models=os.path.join(ROOT, "models")):
                 co = np.empty(3 * len(ev.data.vertices))
                 ev.data.vertices.foreach_get("co", co)
                 pts.append(co.reshape(-1, 3) @ mw[:3, :3].T + mw[:3, 3])
-        c = np.concatenate(pts).mean(0)
-        cam = scene.camera
-        from mathutils import Vector
-        cam.rotation_mode = 'QUATERNION'
-        cam.rotation_quaternion = (Vector(c.tolist()) - cam.location).to_track_quat('-Z', 'Y')
+        pts = np.concatenate(pts)
+        # the avatars' own camera (the DP Camera is keyed on its rig, framing the
+        # synthesised joints): from the follow camera's side at that frame, the
+        # avatars' deformed meshes framed by the add-on's framing maths
+        dp_cam = scene.camera
+        view = np.array(dp_cam.matrix_world.translation) - pts.mean(0)
+        r = scene.render
+        loc, rot = bm.frame_camera(pts, view, dp_cam.data.angle, r.resolution_x / r.resolution_y, margin=1.05)
+        cam = bpy.data.objects.new("Docs Camera", dp_cam.data.copy())
+        scene.collection.objects.link(cam)
+        mw = np.eye(4)
+        mw[:3, :3], mw[:3, 3] = rot, loc
+        cam.matrix_world = Matrix(mw.tolist())
+        scene.camera = cam
         prefix = os.path.join(tmp, "frame_")
         assert bpy.ops.dancing_points.render_preview(filepath=prefix, frame_start=FRAME, frame_end=FRAME,
                                                      resolution_percentage=50) == {'FINISHED'}
         out = os.path.join(ROOT, "docs", "duet_avatars.png")
-        shutil.copyfile(prefix + "%04d.png" % FRAME, out)
+        src = bpy.data.images.load(prefix + "%04d.png" % FRAME, check_existing=False)
+        w, h = src.size
+        px = np.empty(len(src.pixels), dtype=np.float32)
+        src.pixels.foreach_get(px)
+        bpy.data.images.remove(src)
+        px = px.reshape(h, w, -1)
+        px[..., 3] = 1.0
+        img = bpy.data.images.new("dp_docs_out", w, h, alpha=False)  # 8-bit RGB
+        img.pixels.foreach_set(px.ravel())
+        img.filepath_raw, img.file_format = out, 'PNG'
+        img.save()
+        bpy.data.images.remove(img)
         print("wrote", out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

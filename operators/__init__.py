@@ -14,9 +14,9 @@ Thin translators between Blender and the bpy-free core (``dancing_points_addon``
 shims (legacy vs slotted actions, bulk keyframe I/O).
 """
 
-from . import props, take_io, synthesize, render, retarget, batch_cli
+from . import props, take_io, synthesize, render, retarget, batch_cli, method_view, stage
 
-_modules = (props, take_io, synthesize, render, retarget, batch_cli)
+_modules = (props, take_io, synthesize, render, retarget, batch_cli, method_view, stage)
 
 
 def register():

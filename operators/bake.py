@@ -20,7 +20,7 @@ import numpy as np
 from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon import skinning
 from ..dancing_points_addon.skeleton import JOINT_NAMES, PARENTS
-from . import compat
+from . import compat, stage
 from .props import KIND_DUET, ROLE_PROP, is_duet
 
 ROLES = ("leader", "follower")
@@ -35,7 +35,7 @@ def make_body(bone_vectors):
     return bm.body_arrays(skinning.make_body(bone_vectors))
 
 
-class _Created:
+class Created:
     """Data-blocks made by a bake, removed again if the bake fails."""
 
     def __init__(self):
@@ -112,11 +112,12 @@ def rest_frames(arm_obj):
     return rot, heads
 
 
-def key_armature(arm_obj, action_name, positions, rotations, frame_start):
-    """A NEW action on ``arm_obj`` with one keyframe per frame (bulk writes)."""
+def key_armature(arm_obj, action_name, positions, rotations, frame_start, frame_step=1.0):
+    """A NEW action on ``arm_obj`` with one keyframe per sample (bulk writes),
+    sample ``k`` on scene frame ``frame_start + k * frame_step``."""
     rest_rot, rest_heads = rest_frames(arm_obj)
     quats, loc = bm.pose_channels(positions, rotations, rest_rot, rest_heads)
-    frames = frame_start + np.arange(positions.shape[0], dtype=np.float64)
+    frames = frame_start + frame_step * np.arange(positions.shape[0], dtype=np.float64)
     action, slot = compat.new_action_for(arm_obj, action_name)
     for n, name in enumerate(JOINT_NAMES):
         path = 'pose.bones["{:s}"].'.format(name)
@@ -130,7 +131,7 @@ def key_armature(arm_obj, action_name, positions, rotations, frame_start):
     return action
 
 
-def _material(name, colour, created):
+def material(name, colour, created):
     mat = created.add(bpy.data.materials.new(name))
     mat.diffuse_color = colour  # Workbench and the viewport's Material colour
     try:
@@ -157,7 +158,7 @@ def build_body(name, arm_obj, bone_vectors, colour, collection, created):
         mesh.shade_smooth()
     except AttributeError:  # before 4.1
         mesh.polygons.foreach_set("use_smooth", np.ones(len(mesh.polygons), dtype=bool))
-    mesh.materials.append(_material(name, colour, created))
+    mesh.materials.append(material(name, colour, created))
     obj = created.add(bpy.data.objects.new(name, mesh))
     collection.objects.link(obj)
     obj.parent = arm_obj
@@ -189,44 +190,32 @@ def _hide_previous(take_name, keep):
             c.hide_render = True
 
 
-def ensure_camera_and_light(context, points_b, view_dir_b):
-    """Add a camera framing ``points_b`` when the scene has none, and a sun when it
-    has no light. Returns the objects made."""
-    from mathutils import Matrix
-
-    scene = context.scene
-    made = []
-    if scene.camera is None:
-        cam_data = bpy.data.cameras.new("DP Camera")
-        cam_data.lens = 35.0
-        cam = bpy.data.objects.new("DP Camera", cam_data)
-        scene.collection.objects.link(cam)
-        r = scene.render
-        aspect = (r.resolution_x * r.pixel_aspect_x) / max(r.resolution_y * r.pixel_aspect_y, 1e-9)
-        loc, rot = bm.frame_camera(points_b, view_dir_b, cam_data.angle, aspect)
-        m = Matrix(rot.tolist()).to_4x4()
-        m.translation = loc.tolist()
-        cam.matrix_world = m
-        scene.camera = cam
-        made.extend((cam_data, cam))
-    if not any(o.type == 'LIGHT' for o in scene.objects):
-        sun_data = bpy.data.lights.new("DP Sun", 'SUN')
-        sun_data.energy = 3.0
-        sun = bpy.data.objects.new("DP Sun", sun_data)
-        sun.rotation_euler = (np.deg2rad(40.0), 0.0, np.deg2rad(30.0))
-        scene.collection.objects.link(sun)
-        made.extend((sun_data, sun))
-    return made
+def frame_step_for(context, take_name):
+    """Scene frames per 30 Hz sample: the take's (its empties' keys, in scene
+    time), else the scene's frame rate / 30."""
+    from .props import is_take
+    take = bpy.data.collections.get(take_name)
+    if is_take(take) and take.dancing_points.frame_step > 0:
+        return float(take.dancing_points.frame_step)
+    return stage.scene_fps(context.scene) / 30.0
 
 
-def bake_duet(context, duet, take_name, frame_start=1):
+def bake_duet(context, duet, take_name, frame_start=1, frame_step=None):
     """Bake ``duet`` (motion space, SPEC §4) as a new duet collection; returns it.
+
+    Sample ``k`` is keyed on scene frame ``frame_start + k * frame_step``
+    (default: :func:`frame_step_for` the take), so the duet plays at its real
+    speed at any scene frame rate. The stage (``stage.ensure_stage``: floor,
+    DP Camera, light, world) is made or refitted and the scene's frame range
+    set to the duet.
 
     The poses are first made rigid (``blender_math.consistent_pose``: constant
     bone vectors, each bone's end = its parent's end + R · rest vector), which
     leaves a pose the runtime already made consistent unchanged."""
-    created = _Created()
+    created = Created()
     scene = context.scene
+    if frame_step is None:
+        frame_step = frame_step_for(context, take_name)
     try:
         version = _next_version(take_name)
         short = take_name[len("DP Take "):] if take_name.startswith("DP Take ") else take_name
@@ -236,27 +225,24 @@ def bake_duet(context, duet, take_name, frame_start=1):
         coll.dancing_points.take_name = take_name
         coll.dancing_points.version = version
         rigs = {}
-        all_points = []
+        consistent = {}
         for role in ROLES:
             label = ROLE_LABEL[role]
             pos = getattr(duet, role + "_positions")
             rot = getattr(duet, role + "_rotations")
             bv, pos, rot = bm.consistent_pose(pos, rot)
             arm = build_armature(context, "DP " + label, bv, coll, created)
-            action = key_armature(arm, "DP {:s} {:s} v{:d}".format(label, short, version), pos, rot, frame_start)
+            action = key_armature(arm, "DP {:s} {:s} v{:d}".format(label, short, version), pos, rot, frame_start,
+                                  frame_step)
             created.add(action)
             body = build_body("DP {:s} Body".format(label), arm, bv, ROLE_COLOUR[role], coll, created)
             arm[ROLE_PROP] = role
             body[ROLE_PROP] = role
             rigs[role] = (arm, body)
-            all_points.append(bm.to_blender(pos[:: max(1, len(pos) // 200)]).reshape(-1, 3))
+            consistent[role] = pos
         _hide_previous(take_name, coll)
-        lead = duet.leader_positions
-        view = bm.to_blender(bm.hip_forward(lead[0]))
-        c, s = np.cos(np.deg2rad(25.0)), np.sin(np.deg2rad(25.0))
-        view = np.array([c * view[0] - s * view[1], s * view[0] + c * view[1], 0.0])
-        for obj in ensure_camera_and_light(context, np.concatenate(all_points), view):
-            created.add(obj)
+        frames = frame_start + frame_step * np.arange(duet.n_frames, dtype=np.float64)
+        stage.ensure_stage(context, consistent["leader"], consistent["follower"], frames, created)
         return coll, rigs
     except Exception:
         created.remove_all()

@@ -184,20 +184,27 @@ def convert_job(job, progress):
             _retarget_onto_rigs(context, duet_coll, opts, path)
     progress(0.8)
     if "blend" in temps:
+        from . import method_view
+        # the .blend carries the method view (hidden in renders); the FBX and the video do not
+        method = method_view.build_method_view(context, duet_coll, duet, coll, coll.dancing_points.frame_start)
         try:
             res = bpy.ops.wm.save_as_mainfile(filepath=temps["blend"], copy=True, check_existing=False)
         except RuntimeError as exc:
             raise _op_error(exc, path) from None
+        finally:
+            method_view.remove_method_view(method)
         if 'FINISHED' not in res:
             raise UserError("{:s}: saving the .blend failed".format(path))
     if "fbx" in temps:
+        from . import stage
         try:
-            res = bpy.ops.export_scene.fbx(
-                filepath=temps["fbx"], check_existing=False, use_selection=False,
-                object_types={'ARMATURE', 'MESH'}, add_leaf_bones=False, bake_anim=True,
-                bake_anim_use_all_bones=True, bake_anim_use_nla_strips=False,
-                bake_anim_use_all_actions=False, bake_anim_force_startend_keying=True,
-                bake_anim_simplify_factor=0.0)
+            with stage.excluded(context):  # the duet, not the preview's floor
+                res = bpy.ops.export_scene.fbx(
+                    filepath=temps["fbx"], check_existing=False, use_selection=False,
+                    object_types={'ARMATURE', 'MESH'}, add_leaf_bones=False, bake_anim=True,
+                    bake_anim_use_all_bones=True, bake_anim_use_nla_strips=False,
+                    bake_anim_use_all_actions=False, bake_anim_force_startend_keying=True,
+                    bake_anim_simplify_factor=0.0)
         except RuntimeError as exc:
             raise _op_error(exc, path) from None
         if 'FINISHED' not in res:

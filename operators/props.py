@@ -46,6 +46,9 @@ class DP_CollectionSettings(bpy.types.PropertyGroup):
     fps: FloatProperty(name="Take FPS", description="Rate of the take's keyframes (the networks' 30 Hz)",
                        default=30.0)
     frame_start: IntProperty(name="Start Frame", description="Scene frame of the take's first sample", default=1)
+    frame_step: FloatProperty(name="Frame Step", default=1.0, min=1e-3,
+                              description="Scene frames between two samples (the scene's frame rate / 30: "
+                                          "the take plays at its real speed in the scene's time)")
     n_frames: IntProperty(name="Frames", description="Number of samples of the take", default=0, min=0)
     t0: FloatProperty(name="Start Time", description="Time (s) of the take's first sample in the file", default=0.0)
     axis_forward: StringProperty(name="Forward", default='-Z')
@@ -57,6 +60,11 @@ class DP_CollectionSettings(bpy.types.PropertyGroup):
 
 def _is_take(self, coll):
     return getattr(coll, "dancing_points", None) is not None and coll.dancing_points.kind == KIND_TAKE
+
+
+def _camera_mode_update(self, context):
+    from .stage import apply_camera_mode  # the stage module imports this one
+    apply_camera_mode(self.id_data)
 
 
 class DP_SceneSettings(bpy.types.PropertyGroup):
@@ -75,6 +83,13 @@ class DP_SceneSettings(bpy.types.PropertyGroup):
     )
     preview_path: StringProperty(name="Output", subtype='FILE_PATH', default="//dancing_points_preview/",
                                  description="Where Render Preview writes its frames or video")
+    camera_mode: EnumProperty(
+        name="Camera", default='FOLLOW', update=_camera_mode_update,
+        items=(('FOLLOW', "Follow", "The DP Camera follows the couple, keeping both framed"),
+               ('WIDE', "Wide", "The DP Camera stays still, framing the whole take")),
+    )
+    burn_in: BoolProperty(name="Burn-in", default=True,
+                          description="Render Preview stamps the take's name, the frame and the time")
 
 
 classes = (DP_CollectionSettings, DP_SceneSettings)

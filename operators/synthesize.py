@@ -18,7 +18,7 @@ from bpy.props import BoolProperty, StringProperty
 from ..dancing_points_addon.errors import InputError, UserError, error_message
 from ..dancing_points_addon.nets import MODEL_DIR, MODEL_ENV, ModelError, load_nets
 from ..dancing_points_addon.runtime import SynthesisOptions, Synthesizer
-from . import bake
+from . import bake, method_view
 from .props import active_take
 from .take_io import take_from_collection
 
@@ -50,7 +50,8 @@ def make_synthesizer(options: SynthesisOptions):
     except InputError as exc:
         raise ModelError(exc.reason + " in " + exc.path) from None
     try:
-        return Synthesizer(options, nets=nets)
+        # the mapping's predictions are kept for the method view (operators/method_view.py)
+        return Synthesizer(options, nets=nets, record_predictions=True)
     except ValueError as exc:
         raise ModelError(str(exc)) from None
 
@@ -102,6 +103,10 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
         except Exception as exc:
             return self._error(exc)
         t_bake = time.perf_counter() - t0
+        try:
+            method_view.build_method_view(context, duet_coll, duet, coll, coll.dancing_points.frame_start)
+        except Exception as exc:  # the duet stands; the method view is left out whole
+            self.report({'WARNING'}, error_message(exc, "Dancing Points method view not built"))
         self.report({'INFO'}, "Baked '{:s}': {:d} frames (synthesis {:.1f} s, bake {:.1f} s)".format(
             duet_coll.name, duet.n_frames, t_synth, t_bake))
         return {'FINISHED'}

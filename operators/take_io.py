@@ -60,10 +60,10 @@ def _snapshot():
     return {c: set(getattr(bpy.data, c)[:]) for c in colls}
 
 
-def _remove_new(before):
+def _remove_new(before, keep=()):
     new = []
     for c, old in before.items():
-        new.extend(x for x in getattr(bpy.data, c)[:] if x not in old)
+        new.extend(x for x in getattr(bpy.data, c)[:] if x not in old and x not in keep)
     if new:
         bpy.data.batch_remove(new)
 
@@ -107,15 +107,20 @@ def _precheck(path, ext, input_fps=None):
             raise InputError(path, "not a binary FBX file (Blender's importer reads binary FBX only)")
 
 
-def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up='Y', units='AUTO'):
+def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up='Y', units='AUTO',
+                  ghost=None):
     """A BVH/FBX file through Blender's importer -> :class:`Take` (motion space).
 
     Everything the importer made is removed again and the scene's frame rate,
-    range and current frame are restored, whatever happens."""
+    range and current frame are restored, whatever happens; except, when
+    ``ghost`` is a dict and the file was read, the source rig and its children
+    (with their data, materials and actions), described in ``ghost``
+    (``objects``, ``first_frame``, ``rate``, ``scale``) for :func:`keep_ghost`."""
     _precheck(path, ext, input_fps)
     scene = context.scene
     before = _snapshot()
     state = _scene_state(scene)
+    keep = set()
     try:
         try:
             if ext == ".bvh":
@@ -196,14 +201,99 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
         take.meta["source_fps"] = rate
         if not rest_ok:
             take.meta["rotation_estimate"] = "body"
+        if ghost is not None:
+            objs = [arm] + list(arm.children_recursive)
+            ghost.update(objects=objs, first_frame=int(f0), rate=float(rate), scale=float(scale))
+            for obj in objs:
+                keep.add(obj)
+                if obj.data is not None:
+                    keep.add(obj.data)
+                    keep.update(m for m in getattr(obj.data, "materials", ()) if m is not None)
+                act = compat.assigned_action(obj)[0]
+                if act is not None:
+                    keep.add(act)
         return take
     finally:
-        _remove_new(before)
+        _remove_new(before, keep)
         _restore_scene_state(scene, state)
 
 
-def load_any(context, path, input_fps=0.0, height=0.0, axis_forward='-Z', axis_up='Y', units='AUTO'):
-    """Any supported file as a :class:`Take` (motion space, source rate)."""
+GHOST_PROP = "dp_ghost"  # on the objects of a take's source body (operators/method_view.py shows/hides them)
+
+
+def _retime_action(action, slot, first_frame, rate, frame_start, frame_step=1.0):
+    """Move the keys of ``action`` from the file's frames (``first_frame`` at
+    ``rate`` fps) onto the take's scene time: 30 Hz sample ``k`` on frame
+    ``frame_start + k · frame_step`` (bulk)."""
+    a = NET_FPS / rate * frame_step
+    for fc in compat.fcurves_of(action, slot):
+        n = len(fc.keyframe_points)
+        if not n:
+            continue
+        for attr in ("co", "handle_left", "handle_right"):
+            co = np.empty(2 * n, dtype=np.float32)
+            fc.keyframe_points.foreach_get(attr, co)
+            co[0::2] = frame_start + (co[0::2] - first_frame) * a
+            fc.keyframe_points.foreach_set(attr, co)
+        fc.update()
+
+
+def _ghost_look(obj, coll):
+    for c in list(obj.users_collection):
+        c.objects.unlink(obj)
+    coll.objects.link(obj)
+    obj[GHOST_PROP] = True
+    obj.display_type = 'WIRE'
+    obj.show_in_front = False
+    obj.hide_select = True
+
+
+def keep_ghost(coll, ghost, frame_start, frame_step=1.0):
+    """The source rig kept by :func:`read_rig_take` (``ghost``) in the take
+    collection ``coll``: its keys on the take's frames, scaled by the take's unit
+    scale (under an empty "Source Body"), drawn as a wire ghost."""
+    objs = ghost["objects"]
+    root = bpy.data.objects.new("Source Body", None)
+    root.empty_display_size = 0.1
+    _ghost_look(root, coll)
+    s = ghost["scale"]
+    root.scale = (s, s, s)
+    for obj in objs:
+        _ghost_look(obj, coll)
+        if obj.parent is None:
+            obj.parent = root  # world = S · its own transform (identity parent inverse)
+        action, slot = compat.assigned_action(obj)
+        if action is not None:
+            _retime_action(action, slot, ghost["first_frame"], ghost["rate"], frame_start, frame_step)
+    return [root] + objs
+
+
+def build_amc_ghost(context, coll, path, input_fps, frame_start, frame_step=1.0):
+    """The full body of a CMU AMC file as a wire ghost in the take collection:
+    a SPEC armature (its 30 Hz samples keyed as the take's: from ``frame_start``,
+    ``frame_step`` apart) with the default body."""
+    from ..dancing_points_addon.formats.asf_amc import load_amc
+    from ..dancing_points_addon.resample import resample_motion
+    from . import bake
+
+    motion = resample_motion(load_amc(path, fps=input_fps or None), NET_FPS)
+    bv, pos, rot = bm.consistent_pose(motion.positions, motion.rotations)
+    made = bake.Created()
+    try:
+        arm = bake.build_armature(context, "Source Body", bv, coll, made)
+        made.add(bake.key_armature(arm, "DP Source Body " + coll.name, pos, rot, frame_start, frame_step))
+        body = bake.build_body("Source Body Mesh", arm, bv, (0.7, 0.7, 0.7, 0.35), coll, made)
+        for obj in (arm, body):
+            _ghost_look(obj, coll)
+        return [arm, body]
+    except Exception:
+        made.remove_all()
+        raise
+
+
+def load_any(context, path, input_fps=0.0, height=0.0, axis_forward='-Z', axis_up='Y', units='AUTO', ghost=None):
+    """Any supported file as a :class:`Take` (motion space, source rate);
+    ``ghost``: see :func:`read_rig_take` (BVH/FBX only)."""
     path = bpy.path.abspath(path) if path else path
     if not path:
         raise InputError("<no file>", "no file given")
@@ -217,7 +307,8 @@ def load_any(context, path, input_fps=0.0, height=0.0, axis_forward='-Z', axis_u
     h = check_height(path, height) if height and height > 0 else None
     regular_file(path, "a take file", missing="no such file")
     if ext in (".bvh", ".fbx"):
-        take = check_take(read_rig_take(context, path, ext, fps or 0.0, axis_forward, axis_up, units), path)
+        take = check_take(read_rig_take(context, path, ext, fps or 0.0, axis_forward, axis_up, units, ghost),
+                          path)
     else:
         take = load_input(path, input_fps=fps)  # check_take included
     if h is not None:
@@ -227,13 +318,16 @@ def load_any(context, path, input_fps=0.0, height=0.0, axis_forward='-Z', axis_u
 
 # --------------------------------------------------------------------------- take <-> empties
 
-def build_take_collection(context, take30, name, frame_start=1, conv=bm.C, settings=None):
+def build_take_collection(context, take30, name, frame_start=1, conv=bm.C, settings=None, frame_step=1.0):
     """The collection "DP Take <name>" with the three keyframed empties.
 
     ``take30``: a take at 30 Hz (motion space, or the file's axes with ``conv``
-    the file -> Blender matrix). ``settings``: values for ``coll.dancing_points``."""
+    the file -> Blender matrix). ``settings``: values for ``coll.dancing_points``.
+    Sample ``k`` is keyed on scene frame ``frame_start + k * frame_step``
+    (``frame_step`` = the scene's frame rate / 30: the take plays at its real
+    speed in scene time)."""
     T = take30.n_frames
-    frames = frame_start + np.arange(T, dtype=np.float64)
+    frames = sample_frames(frame_start, frame_step, T)
     coll = bpy.data.collections.new("DP Take " + name)
     try:
         context.scene.collection.children.link(coll)
@@ -242,6 +336,7 @@ def build_take_collection(context, take30, name, frame_start=1, conv=bm.C, setti
         for k, v in (settings or {}).items():
             setattr(s, k, v)
         s.frame_start = int(frame_start)
+        s.frame_step = float(frame_step)
         s.n_frames = T
         s.fps = NET_FPS
         s.t0 = float(take30.time[0])
@@ -277,6 +372,17 @@ def build_take_collection(context, take30, name, frame_start=1, conv=bm.C, setti
     except Exception:
         _remove_collection(coll)
         raise
+
+
+def sample_frames(frame_start, frame_step, n):
+    """Scene frames ``(n,)`` of a take's 30 Hz samples."""
+    return frame_start + float(frame_step) * np.arange(n, dtype=np.float64)
+
+
+def take_frames(coll):
+    """Scene frames of the samples of a take collection."""
+    s = coll.dancing_points
+    return sample_frames(s.frame_start, s.frame_step if s.frame_step > 0 else 1.0, int(s.n_frames))
 
 
 SAMPLES_PROP = "dp_samples"  # the take's own 30 Hz samples, float64, motion space
@@ -322,7 +428,25 @@ def _remove_collection(coll):
         ids.append(obj)
         if obj.animation_data and obj.animation_data.action:
             ids.append(obj.animation_data.action)
-    bpy.data.batch_remove(ids)
+        if obj.get(GHOST_PROP) and obj.data is not None:
+            ids.append(obj.data)
+    bpy.data.batch_remove(list(dict.fromkeys(ids)))
+
+
+def _remove_ghost(objs):
+    ids = []
+    for obj in objs:
+        try:
+            obj.name  # raises ReferenceError when already removed
+            ids.append(obj)
+            if obj.data is not None:
+                ids.append(obj.data)
+            if obj.animation_data and obj.animation_data.action:
+                ids.append(obj.animation_data.action)
+        except ReferenceError:
+            continue
+    if ids:
+        bpy.data.batch_remove(list(dict.fromkeys(ids)))
 
 
 def _device_world(obj, context, frames):
@@ -344,7 +468,8 @@ def _device_world(obj, context, frames):
         try:
             depsgraph = context.evaluated_depsgraph_get()
             for i, f in enumerate(frames):
-                scene.frame_set(int(f))
+                whole = int(np.floor(f + 1e-9))
+                scene.frame_set(whole, subframe=float(f - whole))
                 m = obj.evaluated_get(depsgraph).matrix_world
                 loc[i] = m.to_translation()
                 quat[i] = m.to_quaternion()
@@ -376,7 +501,7 @@ def take_from_collection(context, coll):
     T = int(s.n_frames)
     if T < 2:
         raise UserError("take '{:s}' has {:d} frame(s); a take needs at least 2".format(coll.name, T))
-    frames = s.frame_start + np.arange(T, dtype=np.float64)
+    frames = take_frames(coll)
     pos = np.empty((T, 3, 3))
     quats = np.empty((T, 3, 4))
     for d, dev in enumerate(DEVICES):
@@ -432,13 +557,16 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
                                    description="Set the scene to the take's 30 fps")
     update_scene_duration: BoolProperty(name="Update Scene Duration", default=True,
                                         description="Set the scene's frame range to the take")
+    keep_source: BoolProperty(name="Keep Source Body", default=False,
+                              description="BVH, FBX, AMC: keep the file's full body in the take as a wire "
+                                          "ghost, to compare with the synthesised leader")
 
     def draw(self, context):
         layout = self.layout
         layout.use_property_split = True
         layout.use_property_decorate = False
         for prop in ("frame_start", "input_fps", "height", "units", "update_scene_fps",
-                     "update_scene_duration", "axis_forward", "axis_up"):
+                     "update_scene_duration", "keep_source", "axis_forward", "axis_up"):
             layout.prop(self, prop)
 
     def invoke(self, context, event):
@@ -459,8 +587,19 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
     def import_file(self, context):
         path = bpy.path.abspath(self.filepath)
         ext = os.path.splitext(path)[1].lower()
+        ghost = {} if self.keep_source and ext in (".bvh", ".fbx") else None
+        try:
+            take = load_any(context, path, self.input_fps, self.height, self.axis_forward, self.axis_up,
+                            self.units, ghost)
+            coll = self._make_take(context, path, ext, take, ghost)
+        except Exception:
+            if ghost:  # the kept rig, when the take could not be made
+                _remove_ghost(ghost["objects"])
+            raise
+        return coll
+
+    def _make_take(self, context, path, ext, take, ghost):
         conv = np.array(axis_conversion(from_forward=self.axis_forward, from_up=self.axis_up).to_3x3())
-        take = load_any(context, path, self.input_fps, self.height, self.axis_forward, self.axis_up, self.units)
         source_fps = float(take.meta.pop("source_fps", 0.0))
         estimated = take.meta.pop("rotation_estimate", None) is not None
         take.meta.pop("source_naming", None)
@@ -475,14 +614,29 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         settings = dict(source=path, source_type=ext[1:], height=float(take.height or 0.0),
                         input_fps=float(self.input_fps), source_fps=source_fps,
                         axis_forward=self.axis_forward, axis_up=self.axis_up)
-        coll, objs = build_take_collection(context, take30, name, self.frame_start, conv, settings)
+        scene = context.scene
+        # Keys in scene time: one scene frame per sample when the scene is set to 30 fps, else
+        # the scene's rate / 30 (a 24 fps project keeps its rate and the take its real speed).
+        step = 1.0 if self.update_scene_fps else (scene.render.fps / (scene.render.fps_base or 1.0)) / NET_FPS
+        coll, objs = build_take_collection(context, take30, name, self.frame_start, conv, settings, step)
+        try:
+            if ghost:
+                keep_ghost(coll, ghost, self.frame_start, step)
+            elif self.keep_source and ext == ".amc":
+                build_amc_ghost(context, coll, path, float(self.input_fps), self.frame_start, step)
+            if ghost or self.keep_source and ext == ".amc":
+                from .method_view import apply_visibility
+                apply_visibility(context.scene)  # the Method panel's settings (default: not in renders)
+        except Exception:
+            _remove_collection(coll)
+            raise
         scene = context.scene
         if self.update_scene_fps:
             scene.render.fps = int(NET_FPS)
             scene.render.fps_base = 1.0
         if self.update_scene_duration:
             scene.frame_start = self.frame_start
-            scene.frame_end = self.frame_start + take30.n_frames - 1
+            scene.frame_end = self.frame_start + int(np.ceil((take30.n_frames - 1) * step - 1e-6))
         scene.dancing_points.take = coll
         if estimated:
             self.report({'WARNING'}, "{:s}: the rig's rest pose is not a T-pose facing forward; the head "

@@ -6,7 +6,7 @@ import tomllib
 
 import bpy
 
-from . import retarget
+from . import method, retarget
 from .common import SubPanel, split_layout
 
 _MANIFEST = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "blender_manifest.toml")
@@ -93,15 +93,20 @@ class VIEW3D_PT_dancing_points_preview(SubPanel, bpy.types.Panel):
             return
         layout.prop(settings, "preview_path")
         layout.prop(settings, "preview_format")
+        layout.prop(settings, "camera_mode")
+        layout.prop(settings, "burn_in")
         row = layout.row()
         row.enabled = context.scene.camera is not None
         op = row.operator("dancing_points.render_preview", text="Render Preview", icon='RENDER_ANIMATION')
         op.filepath = settings.preview_path
         op.file_format = settings.preview_format
+        op.burn_in = settings.burn_in
+        layout.operator("dancing_points.remove_stage", text="Remove Stage", icon='TRASH')
 
 
 classes = (VIEW3D_PT_dancing_points, VIEW3D_PT_dancing_points_take,
            VIEW3D_PT_dancing_points_synthesis, VIEW3D_PT_dancing_points_preview)
 
 classes += retarget.classes
+classes += method.classes
 register, unregister = bpy.utils.register_classes_factory(classes)

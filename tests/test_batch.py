@@ -212,11 +212,13 @@ def test_blend_fbx(takes, converted, fmt):
                     if act is not None:
                         keys = max(len(fc.keyframe_points) for fc in action_fcurves(act))
                     arms[o.name] = [len(o.data.bones), keys]
-            meshes = sorted(o.name for o in bpy.data.objects if o.type == 'MESH')
-            res[rel] = [arms, meshes, [c.name for c in bpy.data.collections]]
+            meshes = sorted(o.name for o in bpy.data.objects if o.type == 'MESH' and not o.get("dp_method")
+                            and not o.get("dp_stage"))
+            method = sorted((o["dp_method"], o.hide_render) for o in bpy.data.objects if o.get("dp_method"))
+            res[rel] = [arms, meshes, [c.name for c in bpy.data.collections], method]
         print("RESULT " + json.dumps(res))
         """)
-    for rel, (arms, meshes, colls) in got.items():
+    for rel, (arms, meshes, colls, method) in got.items():
         name = os.path.splitext(os.path.basename(rel))[0]
         assert set(arms) == {"DP Leader", "DP Follower"}, (rel, arms)
         for bones, keys in arms.values():
@@ -224,6 +226,11 @@ def test_blend_fbx(takes, converted, fmt):
         assert meshes == ["DP Follower Body", "DP Leader Body"], (rel, meshes)
         if fmt == "blend":
             assert {"DP Take " + name, "DP Duet " + name} <= set(colls), colls
+            # the method view (operators/method_view.py), hidden in renders; never in the FBX
+            assert sorted({k for k, _ in method}) == ["contacts", "inputs", "predictions"], method
+            assert all(hidden for _, hidden in method), method
+        else:
+            assert method == [], method
 
 
 def test_render(tmp_path, salsa_dir):
@@ -266,7 +273,8 @@ def test_rigs_get_the_duet(tmp_path, salsa_dir):
             skinned = [m.name for m in bpy.data.objects if m.type == 'MESH' and
                        any(md.type == 'ARMATURE' and md.object == o for md in m.modifiers)]
             arms[o.name] = [len(o.data.bones), len(keys), skinned]
-        hidden = sorted(o.name for o in bpy.data.objects if o.type == 'MESH' and o.hide_render)
+        hidden = sorted(o.name for o in bpy.data.objects if o.type == 'MESH' and o.hide_render
+                        and not o.get("dp_method"))  # the method view is hidden in renders too
         print("RESULT " + json.dumps([arms, hidden]))
         """)
     arms, hidden = got

@@ -163,7 +163,8 @@ TGT_POINTS.setdefault("vrm0", {"lhip": "J_Bip_L_UpperLeg", "rhip": "J_Bip_R_Uppe
                                   "rankle": "J_Bip_R_Foot", "lball": "J_Bip_L_ToeBase", "rball": "J_Bip_R_ToeBase"})
 
 
-ROLES = {"metarig": "leader", "rigify": "leader", "vrm": "leader", "odd": "follower", "metarig_follower": "follower"}
+ROLES = {"metarig": "leader", "rigify": "leader", "vrm": "leader", "odd": "follower", "metarig_follower": "follower",
+         "rigify_follower": "follower", "vrm_follower": "follower"}
 
 
 @pytest.fixture(scope="module")
@@ -213,7 +214,14 @@ def rigs(tmp_path_factory):
         meta_f.location = (0.5, 1.5, 0.0)
         meta_f.scale = (1.66 / 1.78,) * 3
         bpy.context.view_layer.update()
-        out["rigs"]["metarig_follower"] = meta_f
+        bpy.ops.pose.rigify_generate()
+        rig_f = bpy.context.active_object
+        assert rig_f is not meta_f and "DEF-spine" in rig_f.data.bones
+        rig_f.name = "Rigify Rig Follower"
+        rig_f.location = (2.0, 1.5, 0.0)
+        rig_f.scale = (1.66 / 1.78,) * 3  # generated at the meta-rig's own size: scaled to hers
+        bpy.context.view_layer.update()
+        out["rigs"]["metarig_follower"], out["rigs"]["rigify_follower"] = meta_f, rig_f
     else:
         out["rigify_missing"] = "the bundled 'rigify' add-on is not available in this bpy build"
     # Sizes: the leader's rigs 1.78 m to the skull base (the meta-rig's), the
@@ -226,17 +234,21 @@ def rigs(tmp_path_factory):
     odd = bsu.build_armature("Odd Dancer", [(n, p, tuple(1.13 * np.array(h)), tuple(1.13 * np.array(t)), r)
                                             for n, p, h, t, r in madeup], ('ZXY', 'QUATERNION'),
                              (-1.5, -0.5, 0.0), -np.pi / 2)
-    out["rigs"]["vrm"], out["rigs"]["odd"] = vrm, odd
+    vrm_f = bsu.build_armature("VRoid Follower", [(n, p, tuple(1.12 * np.array(h)), tuple(1.12 * np.array(t)), r)
+                                                  for n, p, h, t, r in _vrm_bones()], ('QUATERNION', 'XYZ'),
+                               (-0.8, 2.2, 0.0), -0.5)
+    out["rigs"]["vrm"], out["rigs"]["odd"], out["rigs"]["vrm_follower"] = vrm, odd, vrm_f
     out["refs"] = {k: reference(o) for k, o in out["rigs"].items()}
     # The duet onto the generated Rigify rig (leader) and the made-up rig (follower);
     # then the leader alone onto the meta-rig and the VRM rig (their hands close onto
-    # the follower's rig), and the follower alone onto her meta-rig.
+    # the follower's rig), and the follower alone onto her meta-rig, the rig
+    # generated from it and her VRM rig: both dancers on every kind of rig.
     t0 = time.perf_counter()
     lead = out["rigs"].get("rigify")
     assert bpy.ops.dancing_points.retarget_duet(duet=duet.name, leader_target=lead.name if lead else "",
                                                 follower_target=odd.name) == {'FINISHED'}
     out["times"]["duet rigify+odd" if lead else "odd"] = time.perf_counter() - t0
-    for kind in ("metarig", "vrm", "metarig_follower"):
+    for kind in ("metarig", "vrm", "metarig_follower", "rigify_follower", "vrm_follower"):
         if kind in out["rigs"]:
             t0 = time.perf_counter()
             assert bpy.ops.dancing_points.retarget(source=dp[ROLES[kind]].name,
@@ -263,14 +275,15 @@ def _deform_displacement(obj, frames):
     return float(np.median(np.linalg.norm(heads - heads[:1], axis=-1).max(0)))
 
 
-@pytest.mark.parametrize("kind", ["metarig", "rigify", "vrm", "odd", "metarig_follower"])
+@pytest.mark.parametrize("kind", ["metarig", "rigify", "vrm", "odd", "metarig_follower", "rigify_follower",
+                                  "vrm_follower"])
 def test_rig_follows_the_duet(rigs, kind):
     if kind not in rigs["rigs"]:
         pytest.skip(rigs.get("rigify_missing", "rig not built"))
     obj = rigs["rigs"][kind]
     ref = rigs["refs"][kind]
     conv = {"metarig": "rigify_metarig", "metarig_follower": "rigify_metarig", "rigify": "rigify_def",
-            "vrm": "vrm0"}.get(kind)
+            "rigify_follower": "rigify_def", "vrm": "vrm0", "vrm_follower": "vrm0"}.get(kind)
     if kind == "odd":  # its landmark bones, found by the structural mapping
         m = {i.target: i.source for i in obj.dp_retarget_map if i.source}
         inv = {}

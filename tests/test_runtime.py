@@ -281,3 +281,20 @@ def test_five_minute_take_stays_together():
           f"leader pelvis-head max {off.max():.2f} m; leash engaged on {synth._placement.leashed} frames")
     assert apart.max() < 3.0
     assert off.max() < 0.5
+
+
+def test_follower_arms_do_not_flip_in_holds(synth):
+    """Seconds 10-15 of salsa take 60_10 (many hand holds): no bone of either
+    dancer turns more than 60 degrees between two 30 Hz frames. A hold that kept
+    her hand on his far wrist while his other one was the close one dragged her
+    arm across: her forearm turned 111 degrees in one frame (frame 91)."""
+    m = load_amc(SALSA / "60_10.amc")
+    i0, i1 = int(10 * m.fps), int(15 * m.fps)
+    take = take_from_motion(Motion(m.positions[i0:i1], m.rotations[i0:i1], m.fps, m.bone_vectors))
+    duet = synth.synthesize(take)
+    for role in ("leader", "follower"):
+        R = getattr(duet, role + "_rotations")
+        rel = np.einsum("tjik,tjil->tjkl", R[:-1], R[1:])
+        step = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1) / 2, -1, 1)))
+        print(f"\n{role}: largest bone turn between frames {step.max():.1f} deg")
+        assert step.max() < 60.0, (role, np.unravel_index(np.argmax(step), step.shape))
