@@ -70,12 +70,13 @@ class FollowerOptions:
     min_distance: float = 0.2  # m, torso axes (0: no separation)
     hold: bool = True  # hand holds by arm IK
     hold_on: float = 0.35  # m, predicted wrist distance under which a hold starts
-    hold_off: float = 0.45  # m, over which it ends
+    hold_off: float = 0.55  # m, over which it ends
     hold_gap: float = 0.07  # m, wrist-to-wrist distance of a hold
     hold_frames: int = 6  # blend in/out
     hold_smooth: float = 0.7  # exponential smoothing of the hold's pull on her wrist
     hold_switch: float = 0.05  # m: a held hand changes partner when his other hand is this much closer
     # (< 0: never while held; the hold ends when its partner is over hold_off away)
+    hold_ramp: bool = True  # the hold's weight a ramp of the distance (hold_on..hold_off), not a switch
     hold_soft: float = 0.05  # m: his two hands weighted by a softmax of distance / hold_soft (0: one partner)
     hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (0: exponential smoothing)
 
@@ -206,10 +207,12 @@ class Separation:
 
 class HandHold:
     """Hand holds of the duet: when one of the four leader/follower wrist
-    pairs is predicted close (under ``hold_on``; released over ``hold_off``),
-    the follower's wrist of that pair is pulled by her arm IK to ``hold_gap``
-    from the leader's wrist (the leader's wrist is his tracked hand) on the
-    side of her shoulder, blended in and out over ``hold_frames``. Her hand's
+    pairs is predicted close, the follower's wrist of that pair is pulled by
+    her arm IK to ``hold_gap`` from the leader's wrist (the leader's wrist is
+    his tracked hand) on the side of her shoulder. The hold's weight follows
+    a ramp of the predicted distance (``hold_ramp``: full under ``hold_on``,
+    none over ``hold_off``; without it a switch with that hysteresis), changing
+    by at most 1 / ``hold_frames`` per frame. Her hand's
     partner is soft (``hold_soft``): his two wrists weighted by a softmax of
     their predicted distances, so no discrete choice flips between his hands
     on a millimetre of noise; a hard partner that stayed held while his other
@@ -235,6 +238,7 @@ class HandHold:
         self._offset = [None, None]
         self._velocity = [None, None]
         self._soft = [None, None]
+        self._ds = [1e9, 1e9]
 
     def targets(self, leader_pos, follower_pos, pred_dist, arm_length):
         """Per follower hand a target (3,) or None. ``pred_dist (2, 2)``: the
@@ -253,6 +257,7 @@ class HandHold:
                 ds = float(soft @ pred_dist[:, j])
                 self.active[j] = ds < (o.hold_off if self.active[j] else o.hold_on)
                 self._soft[j] = soft
+                self._ds[j] = ds
             elif self.active[j]:
                 # the hold stays with its partner while that one is close; the
                 # other of his hands takes over when clearly closer (the spring
@@ -265,7 +270,13 @@ class HandHold:
                 self.active[j] = d < o.hold_on
                 self.partner[j] = i
             step = 1.0 / max(o.hold_frames, 1)
-            self.weight[j] = min(1.0, self.weight[j] + step) if self.active[j] else max(0.0, self.weight[j] - step)
+            if o.hold_ramp and o.hold_soft > 0:
+                # no switch: the weight goes towards a ramp of the distance (full
+                # under hold_on, none over hold_off), at most a step per frame
+                goal_w = min(max((o.hold_off - self._ds[j]) / max(o.hold_off - o.hold_on, 1e-6), 0.0), 1.0)
+                self.weight[j] += min(max(goal_w - self.weight[j], -step), step)
+            else:
+                self.weight[j] = min(1.0, self.weight[j] + step) if self.active[j] else max(0.0, self.weight[j] - step)
             if self.weight[j] <= 0.0 and (o.hold_spring <= 0 or self._offset[j] is None
                                           or float(np.abs(self._offset[j]).max()) < 1e-4):
                 self._offset[j] = self._velocity[j] = None
