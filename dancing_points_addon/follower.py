@@ -71,7 +71,7 @@ class FollowerOptions:
     hold: bool = True  # hand holds by arm IK
     hold_on: float = 0.35  # m, predicted wrist distance under which a hold starts
     hold_off: float = 0.55  # m, over which it ends
-    hold_gap: float = 0.07  # m, wrist-to-wrist distance of a hold
+    hold_gap: float = 0.11  # m, wrist-to-wrist distance of a hold (wrist joints: the hands between them)
     hold_frames: int = 6  # blend in/out
     hold_smooth: float = 0.7  # exponential smoothing of the hold's pull on her wrist
     hold_switch: float = 0.05  # m: a held hand changes partner when his other hand is this much closer
