@@ -39,7 +39,7 @@ import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from helpers import busy_seconds, model_dir  # noqa: E402
+from helpers import busy_seconds, model_dir, proc_table  # noqa: E402
 from dancing_points_addon.argtypes import positive_int  # noqa: E402
 
 SALSA = pathlib.Path(os.environ.get("DP_SHARED", ROOT.parent / "shared")) / "data" / "cmu_salsa"
@@ -50,22 +50,13 @@ GOAL = 0.9
 def _pids_seconds(pids):
     """CPU seconds of the processes ``pids`` and all their descendants (Linux /proc;
     the workers' Blender processes run in sessions of their own)."""
-    tck = os.sysconf("SC_CLK_TCK")
-    procs = {}
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/stat") as f:
-                    fields = f.read().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            procs[int(entry)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / tck)
+    procs = proc_table()
     ours, grew = set(pids), True
     while grew:
-        new = {p for p, (pp, _) in procs.items() if pp in ours} - ours
+        new = {p for p, (pp, _, _) in procs.items() if pp in ours} - ours
         ours |= new
         grew = bool(new)
-    return sum(procs[p][1] for p in ours if p in procs)
+    return sum(procs[p][2] for p in ours if p in procs)
 
 
 SNAPSHOT = ("__init__.py", "blender_manifest.toml", "preferences.py", "LICENSE", "dancing_points_addon", "operators",

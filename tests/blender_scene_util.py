@@ -146,11 +146,14 @@ class RecordingLayout:
         return f
 
 
-def build_armature(name, bones, modes=('QUATERNION',), location=(0.0, 0.0, 0.0), rotation_z=0.0, body=True):
+def build_armature(name, bones, modes=('QUATERNION',), location=(0.0, 0.0, 0.0), rotation_z=0.0, body=True,
+                   connect=lambda bone: True, box=0.03, no_box=()):
     """An armature object from ``bones`` = ``(name, parent, head, tail, roll)`` (metres,
     armature space), pose bones in the rotation ``modes`` in turn, the object at
     ``location`` turned by ``rotation_z``; with ``body``, a skinned box around every
-    bone (rigid weights) parented to it."""
+    bone (rigid weights; ``box``: its half width; none for the bones in ``no_box``)
+    parented to it. A bone starting at its parent's tail is connected unless
+    ``connect(name)`` says no."""
     arm = bpy.data.armatures.new(name)
     obj = bpy.data.objects.new(name, arm)
     bpy.context.scene.collection.objects.link(obj)
@@ -161,7 +164,7 @@ def build_armature(name, bones, modes=('QUATERNION',), location=(0.0, 0.0, 0.0),
         eb.head, eb.tail, eb.roll = h, t, roll
         if parent:
             eb.parent = arm.edit_bones[parent]
-            eb.use_connect = bool(np.allclose(arm.edit_bones[parent].tail, h))
+            eb.use_connect = bool(np.allclose(arm.edit_bones[parent].tail, h)) and connect(bname)
     bpy.ops.object.mode_set(mode='OBJECT')
     for i, pb in enumerate(obj.pose.bones):
         pb.rotation_mode = modes[i % len(modes)]
@@ -170,11 +173,13 @@ def build_armature(name, bones, modes=('QUATERNION',), location=(0.0, 0.0, 0.0),
     if body:
         verts, faces, groups = [], [], []
         for bname, _, h, t, _ in bones:
+            if bname in no_box:
+                continue
             h, t = np.array(h, dtype=float), np.array(t, dtype=float)
             base = len(verts)
             for a in (h, t):
-                for dx in (-0.03, 0.03):
-                    for dy in (-0.03, 0.03):
+                for dx in (-box, box):
+                    for dy in (-box, box):
                         verts.append(tuple(a + (dx, dy, 0.0)))
             faces += [tuple(base + i for i in f) for f in ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6),
                                                             (0, 2, 6, 4), (1, 5, 7, 3))]

@@ -342,6 +342,33 @@ def run_batch(inputs, out, fmt="npz", *extra, jobs=2, timeout=600):
                    "--no-progress", *extra, timeout=timeout)
 
 
+def proc_table():
+    """``{pid: (parent pid, state, CPU seconds)}`` of every process (Linux /proc)."""
+    tck = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            out[int(entry)] = (int(fields[1]), fields[0], (int(fields[11]) + int(fields[12])) / tck)
+    return out
+
+
+def leftovers(folder):
+    """Temporary or hidden files under ``folder``."""
+    from dancing_points_addon.batch import PART
+
+    bad = []
+    for dirpath, dirnames, filenames in os.walk(folder):
+        for n in filenames + dirnames:
+            if n.startswith(".") or PART in n or n.endswith("@"):
+                bad.append(os.path.join(dirpath, n))
+    return bad
+
+
 def read_report(out):
     """The batch report in ``out``."""
     from dancing_points_addon.batch import REPORT_NAME

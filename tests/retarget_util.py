@@ -9,7 +9,27 @@ import numpy as np
 from dancing_points_addon import retarget as rt
 from ext_util import import_from_extension
 
-from helpers import CM, SRC_POINTS, TGT_POINTS
+from helpers import CM, SECONDS, SRC_POINTS, START, TGT_POINTS, cut
+
+
+def baked_salsa_duet(folder, models):
+    """Seconds ``START .. START + SECONDS`` of CMU salsa take 60_10 written as a
+    take in ``folder``, imported and synthesised in a fresh scene: ``(duet
+    collection, {role: DP armature})``."""
+    from conftest import SALSA
+    from dancing_points_addon.formats.asf_amc import load_amc
+    from dancing_points_addon.formats.take import take_from_motion, write_take
+
+    import blender_scene_util as bsu
+
+    m = load_amc(SALSA / "60_10.amc")
+    csv = folder / "salsa_5s.csv"
+    write_take(csv, take_from_motion(cut(m, int(START * m.fps), int(SECONDS * m.fps))))
+    bsu.fresh_scene()
+    assert bpy.ops.dancing_points.import_take(filepath=str(csv)) == {'FINISHED'}
+    assert bpy.ops.dancing_points.synthesize(model_dir=models) == {'FINISHED'}
+    duet = next(c for c in bpy.data.collections if c.dancing_points.kind == 'DUET')
+    return duet, import_from_extension("operators.retarget").duet_armatures(duet)
 
 
 def reference(arm):

@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
-from helpers import N60, cut, make_takes, read_report, run_batch, run_bpy_script, run_cli_long as run_cli
+from helpers import N60, cut, leftovers, make_takes, proc_table, read_report, run_batch, run_bpy_script, run_cli_long as run_cli
 from dancing_points_addon import batch
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.bvh import load_bvh
@@ -46,16 +46,6 @@ BAD = {"broken.csv": "unknown header column", "sub/trunc.bvh": "trunc.bvh", "noa
 
 def by_input(report, root):
     return {os.path.relpath(r["input"], root): r for r in report["files"]}
-
-
-def leftovers(folder):
-    """Temporary or hidden files under ``folder``."""
-    bad = []
-    for dirpath, dirnames, filenames in os.walk(folder):
-        for n in filenames + dirnames:
-            if n.startswith(".") or batch.PART in n or n.endswith("@"):
-                bad.append(os.path.join(dirpath, n))
-    return bad
 
 
 # --------------------------------------------------------------------------- data
@@ -408,17 +398,7 @@ def _running(pid):
 
 def _children_alive(pid):
     """Processes whose parent was ``pid`` (Linux /proc), still running."""
-    alive = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/stat") as f:
-                    fields = f.read().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[1]) == pid and fields[0] != "Z":
-                alive.append(int(entry))
-    return alive
+    return [p for p, (parent, state, _) in proc_table().items() if parent == pid and state != "Z"]
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="needs /proc to find the worker")

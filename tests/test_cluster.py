@@ -18,7 +18,6 @@ Dask is an optional dependency of the command line (requirements-dev.txt):
 this module is skipped only where it is not installed. The throughput figure
 is a benchmark: ``.venv/bin/python tests/bench_cluster.py``.
 """
-import json
 import os
 import shutil
 import signal
@@ -31,7 +30,7 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
-from helpers import N60, cut, make_takes
+from helpers import N60, cut, leftovers, make_takes, read_report
 
 distributed = pytest.importorskip("distributed", reason="dask's distributed package is not installed")
 
@@ -165,20 +164,6 @@ def run_cli(*args, timeout=300):
 def start_cli(*args):
     return subprocess.Popen([sys.executable, "-m", "dancing_points_addon", *map(str, args)], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def read_report(out):
-    with open(os.path.join(out, batch.REPORT_NAME)) as f:
-        return json.load(f)
-
-
-def leftovers(folder):
-    bad = []
-    for dirpath, dirnames, filenames in os.walk(folder):
-        for n in filenames + dirnames:
-            if n.startswith(".") or batch.PART in n or n.endswith("@"):
-                bad.append(os.path.join(dirpath, n))
-    return bad
 
 
 def produced(folder):

@@ -36,7 +36,7 @@ import numpy as np
 import pytest
 
 from conftest import ASSETS, MODELS, SALSA
-from helpers import CM, SECONDS, SRC_POINTS, START, apose_rig, target_rig_from_bones
+from helpers import CM, SRC_POINTS, apose_rig, target_rig_from_bones
 from dancing_points_addon.formats import gltf_meshopt
 from dancing_points_addon import retarget as rt
 from dancing_points_addon.retarget.solver import interp_poly
@@ -278,54 +278,16 @@ except ImportError:  # the bpy-free tests above still run
 if bpy is not None:
     import blender_scene_util as bsu
     from ext_util import import_from_extension
-    from retarget_util import check_rig, evaluate, points, reference
+    from retarget_util import baked_salsa_duet, check_rig, evaluate, points, reference
 
 
 def _build_apose_rig(name="UE Dancer", size=1.0, modes=('QUATERNION', 'XYZ', 'ZXY')):
     """The :func:`apose_rig` (scaled by ``size``) as a Blender armature with a
-    skinned box body, bones in the rotation ``modes`` in turn."""
+    skinned box body, bones in the rotation ``modes`` in turn (twist bones not
+    connected, no box on the root)."""
     bones = [(n, p, tuple(size * np.array(h)), tuple(size * np.array(t)), r) for n, p, h, t, r in apose_rig()]
-    arm = bpy.data.armatures.new(name)
-    obj = bpy.data.objects.new(name, arm)
-    bpy.context.scene.collection.objects.link(obj)
-    bpy.context.view_layer.objects.active = obj
-    bpy.ops.object.mode_set(mode='EDIT')
-    for bname, parent, h, t, roll in bones:
-        eb = arm.edit_bones.new(bname)
-        eb.head, eb.tail, eb.roll = h, t, roll
-        if parent:
-            eb.parent = arm.edit_bones[parent]
-            eb.use_connect = np.allclose(arm.edit_bones[parent].tail, h) and "twist" not in bname
-    bpy.ops.object.mode_set(mode='OBJECT')
-    for i, pb in enumerate(obj.pose.bones):
-        pb.rotation_mode = modes[i % len(modes)]
-    obj.location = (1.5, -0.5, 0.0)
-    obj.rotation_euler = (0.0, 0.0, np.pi / 2)
-    # Body: a box around every bone, rigidly weighted.
-    verts, faces, groups = [], [], []
-    for bname, _, h, t, _ in bones:
-        if bname in ("root",):
-            continue
-        h, t = np.array(h), np.array(t)
-        r = 0.04
-        base = len(verts)
-        for a in (h, t):
-            for dx in (-r, r):
-                for dy in (-r, r):
-                    verts.append(tuple(a + (dx, dy, 0.0)))
-        faces += [(base + i for i in f) for f in ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6),
-                                                   (0, 2, 6, 4), (1, 5, 7, 3))]
-        groups.append((bname, list(range(base, base + 8))))
-    me = bpy.data.meshes.new(name + " Body")
-    me.from_pydata(verts, [], [tuple(f) for f in faces])
-    body = bpy.data.objects.new(name + " Body", me)
-    bpy.context.scene.collection.objects.link(body)
-    body.parent = obj
-    for bname, idx in groups:
-        body.vertex_groups.new(name=bname).add(idx, 1.0, 'REPLACE')
-    mod = body.modifiers.new("Armature", 'ARMATURE')
-    mod.object = obj
-    return obj
+    return bsu.build_armature(name, bones, modes, (1.5, -0.5, 0.0), np.pi / 2,
+                              connect=lambda bone: "twist" not in bone, box=0.04, no_box=("root",))
 
 
 def _import_avatar(path, tmpdir):
@@ -345,21 +307,8 @@ def scene(tmp_path_factory):
         pytest.skip("bpy not installed")
     if not SALSA.exists() or not (ASSETS / AVATARS["leader"]).exists():
         pytest.skip("shared data or avatars not found")
-    from dancing_points_addon.formats.asf_amc import load_amc
-    from dancing_points_addon.skeleton import Motion
-    from dancing_points_addon.formats.take import take_from_motion, write_take
-
     d = tmp_path_factory.mktemp("dp_retarget")
-    m = load_amc(SALSA / "60_10.amc")
-    i0, i1 = int(START * m.fps), int((START + SECONDS) * m.fps)
-    m = Motion(m.positions[i0:i1], m.rotations[i0:i1], m.fps, m.bone_vectors, m.source, dict(m.meta))
-    csv = d / "salsa_5s.csv"
-    write_take(csv, take_from_motion(m))
-    bsu.fresh_scene()
-    assert bpy.ops.dancing_points.import_take(filepath=str(csv)) == {'FINISHED'}
-    assert bpy.ops.dancing_points.synthesize(model_dir=MODELS) == {'FINISHED'}
-    duet = next(c for c in bpy.data.collections if c.dancing_points.kind == 'DUET')
-    dp = import_from_extension("operators.retarget").duet_armatures(duet)
+    duet, dp = baked_salsa_duet(d, MODELS)
     avatars = {role: _import_avatar(ASSETS / f, d) for role, f in AVATARS.items()}
     refs = {role: reference(a) for role, (a, _) in avatars.items()}
     lead = avatars["leader"][0]

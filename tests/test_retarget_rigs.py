@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, SALSA
-from helpers import SECONDS, SRC_POINTS, START, TGT_POINTS, apose_rig, target_rig_from_bones
+from helpers import SRC_POINTS, TGT_POINTS, apose_rig, target_rig_from_bones
 from dancing_points_addon import retarget as rt
 from dancing_points_addon.retarget import rigify as rgf
 from dancing_points_addon.retarget.structure import structural_mapping
@@ -152,7 +152,7 @@ except ImportError:
 if bpy is not None:
     import blender_scene_util as bsu
     from ext_util import import_from_extension
-    from retarget_util import check_rig, evaluate, points, reference
+    from retarget_util import baked_salsa_duet, check_rig, evaluate, points, reference
 
 METARIG_POINTS = {"lhip": "thigh.L", "rhip": "thigh.R", "head": "spine.006", "lwrist": "hand.L", "rwrist": "hand.R",
                   "lankle": "foot.L", "rankle": "foot.R", "lball": "toe.L", "rball": "toe.R"}
@@ -173,21 +173,8 @@ def rigs(tmp_path_factory):
         pytest.skip("bpy not installed")
     if not SALSA.exists():
         pytest.skip("shared data not found")
-    from dancing_points_addon.formats.asf_amc import load_amc
-    from dancing_points_addon.formats.take import take_from_motion, write_take
-    from dancing_points_addon.skeleton import Motion
-
     d = tmp_path_factory.mktemp("dp_retarget_rigs")
-    m = load_amc(SALSA / "60_10.amc")
-    i0, i1 = int(START * m.fps), int((START + SECONDS) * m.fps)
-    m = Motion(m.positions[i0:i1], m.rotations[i0:i1], m.fps, m.bone_vectors, m.source, dict(m.meta))
-    csv = d / "salsa_5s.csv"
-    write_take(csv, take_from_motion(m))
-    bsu.fresh_scene()
-    assert bpy.ops.dancing_points.import_take(filepath=str(csv)) == {'FINISHED'}
-    assert bpy.ops.dancing_points.synthesize(model_dir=MODELS) == {'FINISHED'}
-    duet = next(c for c in bpy.data.collections if c.dancing_points.kind == 'DUET')
-    dp = import_from_extension("operators.retarget").duet_armatures(duet)
+    duet, dp = baked_salsa_duet(d, MODELS)
     out = {"duet": duet, "dp": dp, "dir": d, "rigs": {}, "refs": {}, "times": {}}
     # Rigify: the human meta-rig, and the rig generated from (a copy of) it.
     if bsu.enable_rigify() is not None:

@@ -12,7 +12,7 @@ from dancing_points_addon.nets import MODEL_DIR
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import TRACKED, Motion, bone_lengths_from_positions
 from dancing_points_addon.formats.take import Take, read_take, take_from_motion
-from helpers import REJECTIONS, assert_bad_input, bad_number, broken_amc, run_cli, unknown_bone, write_case
+from helpers import REJECTIONS, assert_bad_input, bad_number, broken_amc, cut, run_cli, unknown_bone, write_case
 
 
 def test_take(take_no="10", seconds=None):
@@ -289,9 +289,7 @@ def test_follower_arms_do_not_flip_in_holds(synth):
     her hand on his far wrist while his other one was the close one dragged her
     arm across: her forearm turned 111 degrees in one frame (frame 91)."""
     m = load_amc(SALSA / "60_10.amc")
-    i0, i1 = int(10 * m.fps), int(15 * m.fps)
-    take = take_from_motion(Motion(m.positions[i0:i1], m.rotations[i0:i1], m.fps, m.bone_vectors))
-    duet = synth.synthesize(take)
+    duet = synth.synthesize(take_from_motion(cut(m, int(10 * m.fps), int(5 * m.fps))))
     for role in ("leader", "follower"):
         R = getattr(duet, role + "_rotations")
         rel = np.einsum("tjik,tjil->tjkl", R[:-1], R[1:])

@@ -54,7 +54,7 @@ import uuid
 
 from ..errors import InputError, UserError, error_message, one_line
 from .options import BPY_FORMATS
-from .plan import remove_temps
+from .plan import remove_temps, settle_unfinished
 from .progress import result_line
 from .worker import ROOT
 
@@ -839,21 +839,12 @@ class ClusterBatch:
             self._restore_signals()
             if self.progress is not None:
                 self.progress.finish()
-        for t in self.tasks:
-            if t.status == "pending" and t.started is not None:
-                t.status, t.error = "interrupted", "interrupted before it finished"
-                t.seconds = None
-        if self.fatal and not self.refused:
-            for t in self.tasks:
-                if t.status in ("pending", "interrupted"):
-                    t.status, t.error = "failed", self.fatal
+        ending = settle_unfinished(self.tasks, None if self.refused else self.fatal, self.stop_signal)
         if self.refused:
             for t in self.tasks:
                 if t.status == "interrupted":
                     t.error = "not converted: " + self.fatal
-        if self.stop_signal is not None:
-            return "terminated" if self.stop_signal == getattr(signal, "SIGTERM", None) else "interrupted"
-        return "refused" if self.refused else "done"
+        return "refused" if self.refused and ending == "done" else ending
 
     def annotate(self, report: dict) -> None:
         """The cluster's part of the report: ``cluster`` (scheduler, workers,

@@ -203,6 +203,26 @@ class Task:
                 "frames": self.frames, "seconds": None if self.seconds is None else round(self.seconds, 3)}
 
 
+def settle_unfinished(tasks, fatal=None, signal_stop=None) -> str:
+    """After a batch run: a started task still pending was interrupted; with a
+    ``fatal`` error every pending or interrupted task failed with it. Returns
+    the run's ending: "terminated" / "interrupted" for ``signal_stop``
+    (SIGTERM / another signal number), else "done"."""
+    import signal
+
+    for t in tasks:
+        if t.status == "pending" and t.started is not None:
+            t.status, t.error = "interrupted", "interrupted before it finished"
+            t.seconds = None
+    if fatal:
+        for t in tasks:
+            if t.status in ("pending", "interrupted"):
+                t.status, t.error = "failed", fatal
+    if signal_stop is not None:
+        return "terminated" if signal_stop == getattr(signal, "SIGTERM", None) else "interrupted"
+    return "done"
+
+
 def output_paths(entries, out_dir, fmt, render=False):
     """The output paths of each of ``entries`` (see :func:`discover`), in kind order."""
     kinds = output_kinds(fmt, render)

@@ -29,7 +29,7 @@ import time
 from ..errors import InputError, one_line
 from . import messages
 from .options import BPY_FORMATS
-from .plan import remove_temps
+from .plan import remove_temps, settle_unfinished
 from .progress import result_line
 from ..argtypes import SINGLE_THREAD_ENV
 from .worker import worker_command
@@ -291,17 +291,7 @@ class Batch:
                 print(f"worker logs: {log_dir}", file=sys.stderr)
             if self.progress is not None:
                 self.progress.finish()
-        for t in self.tasks:
-            if t.status == "pending" and t.started is not None:
-                t.status, t.error = "interrupted", "interrupted before it finished"
-                t.seconds = None
-        if self.fatal:
-            for t in self.tasks:
-                if t.status in ("pending", "interrupted"):
-                    t.status, t.error = "failed", self.fatal
-        if self.stop_signal is not None:
-            return "terminated" if self.stop_signal == getattr(signal, "SIGTERM", None) else "interrupted"
-        return "done"
+        return settle_unfinished(self.tasks, self.fatal, self.stop_signal)
 
     def _shutdown(self, workers):
         """Stop every worker: a clean exit when idle, SIGTERM (then SIGKILL) when
