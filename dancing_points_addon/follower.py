@@ -79,6 +79,18 @@ class FollowerOptions:
     hold_ramp: bool = True  # the hold's weight a ramp of the distance (hold_on..hold_off), not a switch
     hold_soft: float = 0.05  # m: his two hands weighted by a softmax of distance / hold_soft (0: one partner)
     hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (0: exponential smoothing)
+    # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md): a planted
+    # foot holds until her predicted foot is ``lock_drift`` m from it, then steps at least
+    # ``step_height`` m high over ``lock_blend`` frames; a foot that plants stays where it was on
+    # the last frame (``land_still``: it does not slide into the lock) and is put at most
+    # ``lock_floor`` m above her floor (the lowest each foot point has been lately; < 0: where it
+    # is); a free foot moving fast is lifted ``clearance`` m off her floor (0: not)
+    lock_drift: float = 0.2
+    step_height: float = 0.10
+    lock_blend: int = 10
+    lock_floor: float = 0.01
+    land_still: bool = True
+    clearance: float = 0.05
 
 
 class Placement:

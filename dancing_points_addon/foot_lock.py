@@ -16,7 +16,7 @@ _J = JOINT_INDEX
 
 class _Side:
     __slots__ = ("on_a", "on_b", "armed_a", "armed_b", "lock_a", "lock_b",
-                 "off_t", "off_f", "k", "rb", "lift")
+                 "off_t", "off_f", "k", "rb", "lift", "prev", "clear", "need")
 
     def __init__(self):
         self.on_a = self.on_b = False
@@ -27,6 +27,9 @@ class _Side:
         self.k = 1 << 30  # frames since the last transition
         self.rb = None  # leg deltas (femur, tibia, foot) being blended out after a release
         self.lift = None  # (planted ankle height, step height) of the catch-up step after a release
+        self.prev = None  # last frame's output (ankle, ball) points
+        self.clear = 0.0  # the swing clearance's current lift (m)
+        self.need = 0.0  # how far the swing clearance raised the ankle on the last frame (m)
 
 
 class FootLocker:
@@ -81,7 +84,8 @@ class FootLocker:
 
     def __init__(self, on: float = 0.6, off: float = 0.4, blend_frames: int = 8,
                  max_drift: float = 0.15, floor=None, pole_forward: float = 0.1,
-                 step_height: float = 0.06, step_scale: float = 0.3, step_max: float = 0.12):
+                 step_height: float = 0.06, step_scale: float = 0.3, step_max: float = 0.12,
+                 clearance: float = 0.0, clear_speed=(0.3, 0.6), land_still: bool = False):
         if not off <= on:
             raise ValueError("off threshold must not exceed the on threshold")
         self.on = float(on)
@@ -90,6 +94,9 @@ class FootLocker:
         self.max_drift = float(max_drift)
         self.pole_forward = float(pole_forward)
         self.step_height, self.step_scale, self.step_max = float(step_height), float(step_scale), float(step_max)
+        self.clearance = float(clearance)
+        self.land_still = bool(land_still)
+        self.clear_speed = (float(clear_speed[0]), float(clear_speed[1]))
         self.floor = None if floor is None else [float(x) for x in np.asarray(floor).reshape(4)]
         j = _J
         # rows gathered per frame: hip, knee, ankle, ball, toe (left, then right)
@@ -185,7 +192,7 @@ class FootLocker:
         engage_b = new_b is None and st.on_b and st.armed_b and not stepping
         free_old = la is None and lb is None
         if free_old and st.k >= N and not (engage_a or engage_b):
-            return None  # free and settled: the prediction passes through
+            return self._swing(st, rows, fa, fb, fwd)  # free and settled: the prediction (lifted when fast)
 
         if engage_a or engage_b or new_a is not la or new_b is not lb:
             # a transition: the current output under the old mode is the
@@ -196,8 +203,13 @@ class FootLocker:
                     D1, D2, D3 = (rot_scale(D, w) for D in st.rb)
                     _, T_old, bo, _ = self._fk(rows, D1, D2, D3)
                     F_old = (bo[0] - T_old[0], bo[1] - T_old[1], bo[2] - T_old[2])
-                else:
-                    T_old, F_old = (a[0], a[1], a[2]), (fx, fy, fz)
+                elif self.land_still and st.prev is not None and (engage_a or engage_b):
+                    # a free foot that plants stays where it was on the last frame
+                    # (it does not slide the last frame's motion into the lock)
+                    (pa, pb) = st.prev
+                    T_old, F_old = tuple(pa), (pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2])
+                else:  # (raised by the swing clearance on the last frame, if it was)
+                    T_old, F_old = (a[0], a[1] + st.need, a[2]), (fx, fy, fz)
             else:
                 T_old, F_old = self._mode(la, lb, a, fx, fy, fz)
                 ot, of = st.off_t, st.off_f
@@ -258,6 +270,32 @@ class FootLocker:
 
         return self._solve(rows, T, F, fwd)
 
+    def _swing(self, st: _Side, rows, fa, fb, fwd):
+        """A free foot (no lock, no catch-up step): the prediction, but a foot
+        moving fast is off the floor. Its ankle is lifted so that both foot
+        points are ``clearance`` above their floor levels at full speed
+        (``clear_speed[1]`` m/s and over), none at ``clear_speed[0]`` and under
+        (smoothstep between; the speed is the horizontal one since the last
+        output); the lift changes by at most ``clearance / 4`` a frame. None:
+        the prediction passes through."""
+        c = self.clearance
+        st.need = 0.0
+        if c <= 0.0 or fa is None or fb is None or st.prev is None:
+            st.clear = 0.0
+            return None
+        hip, knee, a, b, toe = rows
+        (pa, pb), fps = st.prev, 30.0
+        v = fps * max(sqrt((a[0] - pa[0]) ** 2 + (a[2] - pa[2]) ** 2), sqrt((b[0] - pb[0]) ** 2 + (b[2] - pb[2]) ** 2))
+        v0, v1 = self.clear_speed
+        goal = c * smooth01((v - v0) / max(v1 - v0, 1e-9))
+        h = st.clear + min(max(goal - st.clear, -0.25 * c), 0.25 * c)
+        st.clear = h
+        need = max(fa + h - a[1], fb + h - b[1])
+        if h <= 0.0 or need <= 0.0:
+            return None
+        st.need = need
+        return self._solve(rows, (a[0], a[1] + need, a[2]), (b[0] - a[0], b[1] - a[1], b[2] - a[2]), fwd)
+
     def _solve(self, rows, T, F, fwd):
         """Leg IK to the ankle target ``T`` and foot vector ``F``: the new
         (knee, ankle, ball, toe) and deltas (femur, tibia, foot)."""
@@ -292,6 +330,9 @@ class FootLocker:
                            c[0], c[1], fl[0], fl[1], fwd[0:3])
         res_r = self._side(self._sides[1], (g[15:18], g[18:21], g[21:24], g[24:27], g[27:30]),
                            c[2], c[3], fl[2], fl[3], fwd[3:6])
+        if self.clearance > 0.0 or self.land_still:  # each side's output (ankle, ball), for the swing clearance's speed
+            for side, res, o in ((self._sides[0], res_l, 0), (self._sides[1], res_r, 15)):
+                side.prev = (g[o + 6:o + 9], g[o + 9:o + 12]) if res is None else (res[0][1], res[0][2])
         if res_l is None and res_r is None:
             return P, R
         pts, rots, key = (), (), ()

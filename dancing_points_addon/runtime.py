@@ -272,7 +272,10 @@ class Synthesizer:
             from . import ik
             if self.foot_lock:
                 from .foot_lock import FootLocker
-                self._lockers = (FootLocker(), FootLocker())
+                fol = {} if fo is None else {"max_drift": fo.lock_drift, "step_height": fo.step_height,
+                                            "clearance": fo.clearance, "land_still": fo.land_still,
+                                            "blend_frames": fo.lock_blend}
+                self._lockers = (FootLocker(), FootLocker(**fol))
             if self.hand_ik:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
         if self._hold is not None:
@@ -417,6 +420,9 @@ class Synthesizer:
         leader's on the input, the follower's hands in a hold)."""
         if self._lockers is not None:
             contacts = np.maximum(contacts, self._kinematic_contacts(who, pos))
+            fo = self.follower_options
+            if who == 1 and fo is not None and fo.lock_floor >= 0:  # her new locks go on her floor
+                self._lockers[1].floor = [f + fo.lock_floor for f in self._floor[1]]
             pos, rot = self._lockers[who].step(pos, rot, contacts)
         if targets is not None:
             effector = self._effector if who == 0 else self._fol_effector

@@ -422,3 +422,54 @@ def test_foot_locker_relock_during_a_step_lands_smoothly(take):
     assert ball_locked and ball_locked[0] == rel + N  # not in the air: on landing
     assert y.min() > -1e-3 and np.abs(np.diff(y)).max() < 0.03
     assert abs(out[rel + N + 2, ankle, 1] - P[rel + N + 2, ankle, 1]) < 1e-3  # landed on the prediction
+
+
+def _swinging_foot(take, T=40, speed=0.9):
+    """The left foot of a standing frame swept forward along the floor at
+    ``speed`` m/s (prediction), everything else still."""
+    gt, rot, _ = take
+    P = np.repeat(gt[100:101], T, axis=0)
+    R = np.repeat(rot[100:101], T, axis=0)
+    leg = [J["ltibia"], J["lfoot"], J["ltoes"]]
+    P[:, leg] += (np.arange(T) * speed / 30.0)[:, None, None] * [1.0, 0, 0]
+    return P, R
+
+
+def test_foot_locker_clearance_lifts_a_fast_free_foot(take):
+    """A free foot sweeping along the floor at 0.9 m/s is lifted by the swing
+    clearance (full above 0.6 m/s, reached at most a quarter a frame): both its
+    points ``clearance`` over their floors once up to speed; a foot slower than
+    0.3 m/s and the other, still foot pass through untouched."""
+    P, R = _swinging_foot(take)
+    ankle, ball, rankle = J["ltibia"], J["lfoot"], J["rtibia"]
+    floor = [P[0, ankle, 1], P[0, ball, 1], P[0, rankle, 1], P[0, J["rfoot"], 1]]
+    out, _, locks = _run_locker(FootLocker(floor=floor, clearance=0.05), P, R, np.zeros((len(P), 4)))
+    assert all(lk == [(None, None), (None, None)] for lk in locks)
+    lift = np.minimum(out[:, ankle, 1] - floor[0], out[:, ball, 1] - floor[1])
+    print("\nswing clearance over the first frames (cm): " + " ".join(f"{v * 100:.1f}" for v in lift[:8]))
+    assert np.all(lift[6:] > 0.05 - 1e-6) and np.abs(np.diff(lift)).max() <= 0.0125 + 1e-6
+    assert np.allclose(out[:, rankle], P[:, rankle])
+    slow, _ = _swinging_foot(take, speed=0.25)
+    out2, _, _ = _run_locker(FootLocker(floor=floor, clearance=0.05), slow, R, np.zeros((len(P), 4)))
+    assert np.allclose(out2, slow)
+
+
+def test_foot_locker_land_still_plants_where_the_foot_was(take):
+    """A free foot moving at 0.9 m/s whose contact comes on as it stops: with
+    ``land_still`` it plants where it was on the frame before (no horizontal
+    motion into the lock, so no skating on the landing), without it the landing
+    frame still carries the foot's 3 cm of motion; then it stays put."""
+    P, R = _swinging_foot(take)
+    P[21:] = P[20]  # the prediction stops where the contact comes on
+    ankle = J["ltibia"]
+    C = np.zeros((len(P), 4))
+    C[20:, 0] = C[20:, 1] = 0.9
+    for still in (True, False):
+        out, _, locks = _run_locker(FootLocker(land_still=still), P, R, C)
+        assert locks[19][0] == (None, None) and locks[20][0][0] is not None
+        step = np.linalg.norm((out[20, ankle] - out[19, ankle])[[0, 2]])
+        after = np.linalg.norm(np.diff(out[20:, ankle][:, [0, 2]], axis=0), axis=-1).max()
+        print(f"\nland_still={still}: ankle moves {step * 100:.2f} cm into the lock, "
+              f"then at most {after * 100:.2f} cm a frame")
+        assert after < 1e-9
+        assert (step < 1e-9) if still else (step > 0.02)

@@ -258,6 +258,36 @@ def test_foot_locking_halves_skating(synth):
     assert lock <= gt
 
 
+def test_follower_steps_instead_of_sliding():
+    """SPEC §6 skating of the follower (each foot point's floor from her ground
+    truth) over the 13 test takes: with her foot lock (a planted foot holds
+    until her predicted foot is 20 cm away, then steps at least 10 cm high
+    over 10 frames; a foot that plants stays where it was, on her floor; a fast
+    free foot is off the floor) at most 1.2 times her ground truth's own, and at most half of
+    what the leader's lock settings give her (they slid: the body moved on, the
+    lock let go at 15 cm and the foot dragged along the floor into its next
+    lock)."""
+    from dancing_points_addon.follower import FollowerOptions
+    from training.dataset import SALSA_TAKES
+    from training.metrics import aggregate, foot_skating_spec
+
+    old = Synthesizer(follower=FollowerOptions(lock_drift=0.15, step_height=0.06, lock_floor=-1.0, land_still=False,
+                                               clearance=0.0))
+    sums = {"stepping": [], "sliding": [], "ground truth": []}
+    for no in SALSA_TAKES:
+        take, _, true_f, _, _ = test_take(no)
+        new, slide = Synthesizer().synthesize(take), old.synthesize(take)
+        n = min(new.n_frames, len(true_f))
+        m = np.arange(n) >= F.FPS
+        for k, p in zip(sums, (new.follower_positions, slide.follower_positions, true_f)):
+            sums[k].append(foot_skating_spec(p[:n], true_f[:n], m))
+    step, slide, gt = (aggregate(v) for v in sums.values())
+    print(f"\nfollower foot skating (cm/s), 13 test takes: stepping {step:.2f}, sliding {slide:.2f}, "
+          f"ground truth {gt:.2f}")
+    assert step <= 1.2 * gt
+    assert step <= 0.5 * slide
+
+
 def test_five_minute_take_stays_together():
     """A 5-minute continuous take (salsa take 01 played forth and back at 60 Hz):
     the follower within 3 m of the leader (pelvis, horizontally) in every frame,
