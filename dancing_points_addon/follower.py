@@ -84,13 +84,15 @@ class FollowerOptions:
     # ``step_height`` m high over ``lock_blend`` frames; a foot that plants stays where it was on
     # the last frame (``land_still``: it does not slide into the lock) and is put at most
     # ``lock_floor`` m above her floor (the lowest each foot point has been lately; < 0: where it
-    # is); a free foot moving fast is lifted ``clearance`` m off her floor (0: not)
+    # is), once it moves slower than ``engage_speed`` m/s (0: at once); a free foot moving fast is
+    # lifted ``clearance`` m off her floor (0: not)
     lock_drift: float = 0.2
     step_height: float = 0.10
     lock_blend: int = 10
     lock_floor: float = 0.01
     land_still: bool = True
     clearance: float = 0.05
+    engage_speed: float = 0.5
 
 
 class Placement:

@@ -85,7 +85,8 @@ class FootLocker:
     def __init__(self, on: float = 0.6, off: float = 0.4, blend_frames: int = 8,
                  max_drift: float = 0.15, floor=None, pole_forward: float = 0.1,
                  step_height: float = 0.06, step_scale: float = 0.3, step_max: float = 0.12,
-                 clearance: float = 0.0, clear_speed=(0.3, 0.6), land_still: bool = False):
+                 clearance: float = 0.0, clear_speed=(0.3, 0.6), land_still: bool = False,
+                 engage_speed: float = 0.0):
         if not off <= on:
             raise ValueError("off threshold must not exceed the on threshold")
         self.on = float(on)
@@ -96,6 +97,7 @@ class FootLocker:
         self.step_height, self.step_scale, self.step_max = float(step_height), float(step_scale), float(step_max)
         self.clearance = float(clearance)
         self.land_still = bool(land_still)
+        self.engage_speed = float(engage_speed)
         self.clear_speed = (float(clear_speed[0]), float(clear_speed[1]))
         self.floor = None if floor is None else [float(x) for x in np.asarray(floor).reshape(4)]
         j = _J
@@ -190,6 +192,11 @@ class FootLocker:
         stepping = la is None and lb is None and st.lift is not None and st.k < N
         engage_a = new_a is None and st.on_a and st.armed_a and not stepping
         engage_b = new_b is None and st.on_b and st.armed_b and not stepping
+        if self.engage_speed > 0.0 and st.prev is not None and (engage_a or engage_b):
+            # a point plants only once it is slow (horizontally, since the last output)
+            (pa, pb), lim = st.prev, (self.engage_speed / 30.0) ** 2
+            engage_a = engage_a and (a[0] - pa[0]) ** 2 + (a[2] - pa[2]) ** 2 < lim
+            engage_b = engage_b and (b[0] - pb[0]) ** 2 + (b[2] - pb[2]) ** 2 < lim
         free_old = la is None and lb is None
         if free_old and st.k >= N and not (engage_a or engage_b):
             return self._swing(st, rows, fa, fb, fwd)  # free and settled: the prediction (lifted when fast)
@@ -330,7 +337,7 @@ class FootLocker:
                            c[0], c[1], fl[0], fl[1], fwd[0:3])
         res_r = self._side(self._sides[1], (g[15:18], g[18:21], g[21:24], g[24:27], g[27:30]),
                            c[2], c[3], fl[2], fl[3], fwd[3:6])
-        if self.clearance > 0.0 or self.land_still:  # each side's output (ankle, ball), for the swing clearance's speed
+        if self.clearance > 0.0 or self.land_still or self.engage_speed > 0.0:  # each side's output (ankle, ball), for the swing clearance's speed
             for side, res, o in ((self._sides[0], res_l, 0), (self._sides[1], res_r, 15)):
                 side.prev = (g[o + 6:o + 9], g[o + 9:o + 12]) if res is None else (res[0][1], res[0][2])
         if res_l is None and res_r is None:

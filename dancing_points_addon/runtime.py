@@ -274,7 +274,7 @@ class Synthesizer:
                 from .foot_lock import FootLocker
                 fol = {} if fo is None else {"max_drift": fo.lock_drift, "step_height": fo.step_height,
                                             "clearance": fo.clearance, "land_still": fo.land_still,
-                                            "blend_frames": fo.lock_blend}
+                                            "blend_frames": fo.lock_blend, "engage_speed": fo.engage_speed}
                 self._lockers = (FootLocker(), FootLocker(**fol))
             if self.hand_ik:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
