@@ -79,6 +79,7 @@ class FollowerOptions:
     hold_ramp: bool = True  # the hold's weight a ramp of the distance (hold_on..hold_off), not a switch
     hold_soft: float = 0.05  # m: his two hands weighted by a softmax of distance / hold_soft (0: one partner)
     hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (0: exponential smoothing)
+    hold_soft_rate: float = 0.05  # the soft partner's weights change by at most this much a frame (0: free)
     # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md): a planted
     # foot holds until her predicted foot is ``lock_drift`` m from it, then steps at least
     # ``step_height`` m high over ``lock_blend`` frames; a foot that plants stays where it was on
@@ -232,7 +233,9 @@ class HandHold:
     on a millimetre of noise; a hard partner that stayed held while his other
     hand was the close one dragged her arm across (a 112° forearm turn in one
     frame) — with one partner, ``hold_switch`` changes it when the other hand
-    is clearly closer. The pull
+    is clearly closer. The soft partner's weights change by at most
+    ``hold_soft_rate`` a frame, so when his hands swap as the nearer one her
+    wrist goes over in two thirds of a second instead of being swept across. The pull
     (her wrist's offset from where her tracker puts it) follows a critically
     damped spring of ``hold_spring`` Hz, so its acceleration is bounded and the
     arm does not jerk when a hold starts, ends or changes partner (the hold's
@@ -268,6 +271,10 @@ class HandHold:
                 # predicted distances (no discrete choice to flip on noise)
                 e = np.exp(-(pred_dist[:, j] - d) / o.hold_soft)
                 soft = e / e.sum()
+                if o.hold_soft_rate > 0 and self._soft[j] is not None:
+                    # his hands swap as her partner gradually: her wrist is not swept across
+                    prev = self._soft[j]
+                    soft = prev + np.clip(soft - prev, -o.hold_soft_rate, o.hold_soft_rate)
                 ds = float(soft @ pred_dist[:, j])
                 self.active[j] = ds < (o.hold_off if self.active[j] else o.hold_on)
                 self._soft[j] = soft
