@@ -8,10 +8,16 @@ from math import pi, sin, sqrt
 
 import numpy as np
 
+from .features import FPS
 from .ik import I3, mat_vec, rot_between_s, rot_scale, smooth01, two_bone_s
 from .skeleton import JOINT_INDEX
 
 _J = JOINT_INDEX
+
+
+def _moved2(p, q):
+    """Squared horizontal distance of two points (3-sequences)."""
+    return (p[0] - q[0]) ** 2 + (p[2] - q[2]) ** 2
 
 
 class _Side:
@@ -80,6 +86,14 @@ class FootLocker:
     fallen below ``off`` or the release blend is over.
     When the lock point is out of the leg's reach the leg is stretched
     straight towards it (the ankle then misses the lock by the shortfall).
+
+    Options off by default (the follower uses them, see ``FollowerOptions``):
+    ``engage_speed`` (m/s): a point locks only once it moves slower than this
+    (horizontally, since the last output); ``land_still``: a free foot that
+    locks stays where it was on the last frame instead of carrying that
+    frame's motion into the lock; ``clearance`` (m): a free foot moving
+    faster than ``clear_speed[0]`` m/s is lifted off its floor, fully from
+    ``clear_speed[1]`` (see :meth:`_swing`).
     """
 
     def __init__(self, on: float = 0.6, off: float = 0.4, blend_frames: int = 8,
@@ -99,6 +113,8 @@ class FootLocker:
         self.land_still = bool(land_still)
         self.engage_speed = float(engage_speed)
         self.clear_speed = (float(clear_speed[0]), float(clear_speed[1]))
+        # each side's last output (ankle, ball) is kept for the options that need its speed
+        self._keep_prev = self.clearance > 0.0 or self.land_still or self.engage_speed > 0.0
         self.floor = None if floor is None else [float(x) for x in np.asarray(floor).reshape(4)]
         j = _J
         # rows gathered per frame: hip, knee, ankle, ball, toe (left, then right)
@@ -194,9 +210,9 @@ class FootLocker:
         engage_b = new_b is None and st.on_b and st.armed_b and not stepping
         if self.engage_speed > 0.0 and st.prev is not None and (engage_a or engage_b):
             # a point plants only once it is slow (horizontally, since the last output)
-            (pa, pb), lim = st.prev, (self.engage_speed / 30.0) ** 2
-            engage_a = engage_a and (a[0] - pa[0]) ** 2 + (a[2] - pa[2]) ** 2 < lim
-            engage_b = engage_b and (b[0] - pb[0]) ** 2 + (b[2] - pb[2]) ** 2 < lim
+            lim = (self.engage_speed / FPS) ** 2
+            engage_a = engage_a and _moved2(a, st.prev[0]) < lim
+            engage_b = engage_b and _moved2(b, st.prev[1]) < lim
         free_old = la is None and lb is None
         if free_old and st.k >= N and not (engage_a or engage_b):
             return self._swing(st, rows, fa, fb, fwd)  # free and settled: the prediction (lifted when fast)
@@ -210,10 +226,10 @@ class FootLocker:
                     D1, D2, D3 = (rot_scale(D, w) for D in st.rb)
                     _, T_old, bo, _ = self._fk(rows, D1, D2, D3)
                     F_old = (bo[0] - T_old[0], bo[1] - T_old[1], bo[2] - T_old[2])
-                elif self.land_still and st.prev is not None and (engage_a or engage_b):
+                elif self.land_still and st.prev is not None:
                     # a free foot that plants stays where it was on the last frame
                     # (it does not slide the last frame's motion into the lock)
-                    (pa, pb) = st.prev
+                    pa, pb = st.prev
                     T_old, F_old = tuple(pa), (pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2])
                 else:  # (raised by the swing clearance on the last frame, if it was)
                     T_old, F_old = (a[0], a[1] + st.need, a[2]), (fx, fy, fz)
@@ -290,9 +306,8 @@ class FootLocker:
         if c <= 0.0 or fa is None or fb is None or st.prev is None:
             st.clear = 0.0
             return None
-        hip, knee, a, b, toe = rows
-        (pa, pb), fps = st.prev, 30.0
-        v = fps * max(sqrt((a[0] - pa[0]) ** 2 + (a[2] - pa[2]) ** 2), sqrt((b[0] - pb[0]) ** 2 + (b[2] - pb[2]) ** 2))
+        a, b = rows[2], rows[3]
+        v = FPS * sqrt(max(_moved2(a, st.prev[0]), _moved2(b, st.prev[1])))
         v0, v1 = self.clear_speed
         goal = c * smooth01((v - v0) / max(v1 - v0, 1e-9))
         h = st.clear + min(max(goal - st.clear, -0.25 * c), 0.25 * c)
@@ -337,7 +352,7 @@ class FootLocker:
                            c[0], c[1], fl[0], fl[1], fwd[0:3])
         res_r = self._side(self._sides[1], (g[15:18], g[18:21], g[21:24], g[24:27], g[27:30]),
                            c[2], c[3], fl[2], fl[3], fwd[3:6])
-        if self.clearance > 0.0 or self.land_still or self.engage_speed > 0.0:  # each side's output (ankle, ball), for the swing clearance's speed
+        if self._keep_prev:
             for side, res, o in ((self._sides[0], res_l, 0), (self._sides[1], res_r, 15)):
                 side.prev = (g[o + 6:o + 9], g[o + 9:o + 12]) if res is None else (res[0][1], res[0][2])
         if res_l is None and res_r is None:
