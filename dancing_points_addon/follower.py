@@ -69,8 +69,8 @@ class FollowerOptions:
     max_gap: float = 0.8  # m, the farthest she may lag behind her target (a leash)
     min_distance: float = 0.2  # m, torso axes (0: no separation)
     hold: bool = True  # hand holds by arm IK
-    hold_on: float = 0.35  # m, predicted wrist distance under which a hold starts
-    hold_off: float = 0.55  # m, over which it ends
+    hold_on: float = 0.6  # m, predicted wrist distance under which a hold is full
+    hold_off: float = 1.0  # m, over which there is none
     hold_gap: float = 0.11  # m, wrist-to-wrist distance of a hold (wrist joints: the hands between them)
     hold_frames: int = 6  # blend in/out
     hold_smooth: float = 0.7  # exponential smoothing of the hold's pull on her wrist
@@ -80,6 +80,9 @@ class FollowerOptions:
     hold_soft: float = 0.05  # m: his two hands weighted by a softmax of distance / hold_soft (0: one partner)
     hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (0: exponential smoothing)
     hold_soft_rate: float = 0.05  # the soft partner's weights change by at most this much a frame (0: free)
+    hold_arm_ik: str = "swing"  # her arm IK under a hold (``ik.EndEffectorIK``'s ``arm``): "swing" or "pole"
+    hold_near: float = 0.4  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1;
+    # his hand at her shoulder is his hand on her back, not a hold; 0: never)
     # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md): a planted
     # foot holds until her predicted foot is ``lock_drift`` m from it, then steps at least
     # ``step_height`` m high over ``lock_blend`` frames; a foot that plants stays where it was on
@@ -240,7 +243,10 @@ class HandHold:
     damped spring of ``hold_spring`` Hz, so its acceleration is bounded and the
     arm does not jerk when a hold starts, ends or changes partner (the hold's
     jitter, 258 → 176 m/s³ on val). One pair per follower hand; a hold her arm
-    cannot reach fades out instead of wrenching the shoulder."""
+    cannot reach fades out instead of wrenching the shoulder, and so does one
+    whose goal is within ``hold_near`` of her arm's length from her shoulder
+    (his hand on her back: folding her wrist onto her own shoulder flipped
+    her arm)."""
 
     SHOULDERS = (JOINT_INDEX["lclavicle"], JOINT_INDEX["rclavicle"])
 
@@ -314,6 +320,10 @@ class HandHold:
             # within reach of her shoulder: full weight up to 90 % of the arm, none past 100 %
             reach = float(np.sqrt((goal - sh) @ (goal - sh))) / max(float(arm_length[j]), 1e-6)
             w = self.weight[j] * min(max((1.0 - reach) / 0.1, 0.0), 1.0)
+            if o.hold_near > 0:
+                # his hand at her shoulder (his hand on her back, not a hand hold):
+                # her wrist is not folded onto her own shoulder
+                w *= min(max((reach - o.hold_near + 0.1) / 0.2, 0.0), 1.0)
             w = w * w * (3.0 - 2.0 * w)  # smoothstep
             # her wrist's offset from her body follows the hold smoothly: the
             # target is the previous frame's offset eased towards this one

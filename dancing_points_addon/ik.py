@@ -24,7 +24,7 @@ touch: numpy's per-call overhead (~1 µs) would dominate such tiny problems.
 from __future__ import annotations
 
 from itertools import chain
-from math import atan2, cos, isfinite, sin, sqrt
+from math import atan2, cos, isfinite, radians, sin, sqrt
 
 import numpy as np
 
@@ -322,6 +322,51 @@ def _about(p, piv, R, new_piv):
     return (new_piv[0] + x, new_piv[1] + y, new_piv[2] + z)
 
 
+def _frame_s(ux, uy, uz, nx, ny, nz):
+    """Rows of the orthonormal frame (u, n ⟂ u, u × n), or None when degenerate."""
+    nu = sqrt(ux * ux + uy * uy + uz * uz)
+    if nu < 1e-12:
+        return None
+    ux, uy, uz = ux / nu, uy / nu, uz / nu
+    s = nx * ux + ny * uy + nz * uz
+    nx, ny, nz = nx - s * ux, ny - s * uy, nz - s * uz
+    nn = sqrt(nx * nx + ny * ny + nz * nz)
+    if nn < 1e-12:
+        return None
+    nx, ny, nz = nx / nn, ny / nn, nz / nn
+    return (ux, uy, uz, nx, ny, nz, uy * nz - uz * ny, uz * nx - ux * nz, ux * ny - uy * nx)
+
+
+def _align_s(F0, F1):
+    """The rotation taking frame ``F0`` onto ``F1`` (rows as from :func:`_frame_s`): F1ᵀ F0."""
+    return tuple(F1[k] * F0[m] + F1[3 + k] * F0[3 + m] + F1[6 + k] * F0[6 + m]
+                 for k in range(3) for m in range(3))
+
+
+def _hinge_turns(sh, el, wr, nel, nwr, R1, R2, straight=0.05):
+    """The turns of a two-bone arm as a hinge: each bone's rotation takes its
+    old (direction, bend-plane normal) frame onto the new one, so the elbow's
+    normal is carried over and the forearm's roll follows the upper arm's —
+    a minimal rotation of the forearm alone is ill-defined when it has to turn
+    by nearly half a turn, and flips. An arm (old or new) straighter than
+    ``straight`` (sine of the elbow angle) keeps the minimal rotations
+    ``R1, R2`` given."""
+    u = _sub3(el, sh); l = _sub3(wr, el)
+    u2 = _sub3(nel, sh); l2 = _sub3(nwr, nel)
+    n = (u[1] * l[2] - u[2] * l[1], u[2] * l[0] - u[0] * l[2], u[0] * l[1] - u[1] * l[0])
+    n2 = (u2[1] * l2[2] - u2[2] * l2[1], u2[2] * l2[0] - u2[0] * l2[2], u2[0] * l2[1] - u2[1] * l2[0])
+    lu = sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) * sqrt(l[0] ** 2 + l[1] ** 2 + l[2] ** 2)
+    nn = sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2)
+    nn2 = sqrt(n2[0] ** 2 + n2[1] ** 2 + n2[2] ** 2)
+    if lu < 1e-12 or nn < straight * lu or nn2 < straight * lu:
+        return R1, R2
+    Fu, Fu2 = _frame_s(*u, *n), _frame_s(*u2, *n2)
+    Fl, Fl2 = _frame_s(*l, *n), _frame_s(*l2, *n2)
+    if Fu is None or Fu2 is None or Fl is None or Fl2 is None:
+        return R1, R2
+    return _align_s(Fu, Fu2), _align_s(Fl, Fl2)
+
+
 class EndEffectorIK:
     """Pull the tracked points (SPEC §2: end of ``upperneck``, ``lwrist``,
     ``rwrist``) onto target positions, frame by frame (stateless).
@@ -344,7 +389,12 @@ class EndEffectorIK:
     *Arms.* Two-bone IK from the shoulder (end of ``*clavicle``) over the elbow
     (end of ``*humerus``) to the wrist (end of ``*wrist``); the forearm is
     ``*radius`` and ``*wrist`` as one rigid piece, the pole the predicted
-    elbow. When the target is beyond ``reach`` × the arm's length, the
+    elbow (``arm="pole"``, the default). With ``arm="swing"`` the whole arm
+    first swings about the shoulder towards the target and the bones then
+    turn as a hinge, keeping the arm's bend plane (see ``_swing_hinge``): the
+    pole method turns the forearm by its own minimal rotation, which flips
+    when the forearm has to turn by nearly half a turn (a hand hold pulling the
+    wrist across). When the target is beyond ``reach`` × the arm's length, the
     clavicle first turns about its start (two-bone IK of the clavicle and the
     stretched arm) to bring the shoulder closer. The hand, fingers and thumb
     move rigidly with the forearm.
@@ -354,7 +404,11 @@ class EndEffectorIK:
 
     _FIRST = _J["lowerback"]  # joints lowerback..rthumb (11..30) are the upper body
 
-    def __init__(self, lean: float = 0.0, max_stretch: float = 0.08, reach: float = 0.999):
+    def __init__(self, lean: float = 0.0, max_stretch: float = 0.08, reach: float = 0.999,
+                 arm: str = "pole"):
+        if arm not in ("pole", "swing"):
+            raise ValueError(f"EndEffectorIK: arm must be 'pole' or 'swing', not {arm!r}")
+        self.arm = arm
         self.lean = float(lean)
         self.max_stretch = float(max_stretch)
         self.reach = float(reach)
@@ -443,6 +497,39 @@ class EndEffectorIK:
         pts[UN] = _add3(un2, e)
         pts[HD] = _add3(pts[UN], _sub3(hd, un))
 
+    SWING_LO, SWING_HI = 0.2, 0.4
+    SWING_COS_ON, SWING_COS_OFF = cos(radians(120.0)), cos(radians(160.0))
+
+    @classmethod
+    def _swing_hinge(cls, sh, el, wr, target):
+        """Swing the whole arm about the shoulder by a fraction of the minimal
+        rotation aiming its shoulder→wrist line at the target — all of it when
+        the wrist is at least 40 % of the arm from the shoulder, none under
+        20 % (a folded arm, where that line's direction is ill-defined) — then
+        two-bone IK from the swung arm with its elbow as the pole, each bone
+        turning as a hinge (:func:`_hinge_turns`)."""
+        u, l, w = _sub3(el, sh), _sub3(wr, el), _sub3(wr, sh)
+        arm = sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) + sqrt(l[0] ** 2 + l[1] ** 2 + l[2] ** 2)
+        wn = sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
+        beta = smooth01((wn / max(arm, 1e-12) - cls.SWING_LO) / (cls.SWING_HI - cls.SWING_LO))
+        d = _sub3(target, sh)
+        dn = sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2)
+        if beta > 0.0 and dn > 1e-12:
+            # a swing of nearly half a turn has an ill-defined axis: fade it out
+            c = (w[0] * d[0] + w[1] * d[1] + w[2] * d[2]) / (wn * dn)
+            beta *= smooth01((c - cls.SWING_COS_OFF) / (cls.SWING_COS_ON - cls.SWING_COS_OFF))
+        if beta > 0.0:
+            Q = rot_between_s(*w, *d)
+            if beta < 1.0:
+                Q = rot_scale(Q, beta)
+            el = _about(el, sh, Q, sh)
+            wr = _about(wr, sh, Q, sh)
+        nel, nwr, R1, R2 = two_bone_s(sh, el, wr, target, el)
+        R1, R2 = _hinge_turns(sh, el, wr, nel, nwr, R1, R2)
+        if beta > 0.0:
+            R1, R2 = mat_mul(R1, Q), mat_mul(R2, Q)
+        return nel, nwr, R1, R2
+
     def _solve_arm(self, pts, delta, arm, target):
         clav, hum, rigid = arm
         n0 = pts[self._j["thorax"]]
@@ -465,7 +552,10 @@ class EndEffectorIK:
             self._compose(delta, clav, Rc)
             pts[clav] = sh = nsh
             el, wr = pts[hum], pts[rigid[1]]
-        nel, nwr, R1, R2 = two_bone_s(sh, el, wr, target, el)
+        if self.arm == "swing":
+            nel, nwr, R1, R2 = self._swing_hinge(sh, el, wr, target)
+        else:
+            nel, nwr, R1, R2 = two_bone_s(sh, el, wr, target, el)
         for i in rigid:
             pts[i] = _about(pts[i], el, R2, nel)
             self._compose(delta, i, R2)

@@ -226,7 +226,7 @@ class Synthesizer:
         self.follower_options = follower
         # Rigid skeleton: the neck may turn but the spine may not stretch, so a
         # baked armature (fixed bone lengths) shows exactly this pose.
-        self.ik_options = {"max_stretch": 0.0}
+        self.ik_options = {"max_stretch": 0.0, "arm": "swing"}
         self.default_pose = {r: self._default_pose(nets[r]) for r in ("leader", "follower")}
         # Each dancer's rest skeleton, from its (FK-consistent) default pose.
         self.bone_vectors = {r: bone_vectors_from_pose(F.pose_positions(p), F.pose_rotations(p))
@@ -280,7 +280,7 @@ class Synthesizer:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
         if self._hold is not None:
             from . import ik
-            self._fol_effector = ik.EndEffectorIK(**self.ik_options)
+            self._fol_effector = ik.EndEffectorIK(**{**self.ik_options, "arm": fo.hold_arm_ik})
 
     def scale(self) -> float:
         """Tracker scale: training height over the user's (paper §7 calibration),

@@ -489,3 +489,46 @@ def test_foot_locker_engage_speed_waits_for_a_slow_foot(take):
         first[v] = next(t for t in range(len(P)) if locks[t][0][0] is not None)
     print(f"\nfirst lock: frame {first[0.0]} without, {first[0.5]} with engage_speed 0.5 m/s")
     assert first[0.0] == 18 and first[0.5] == 25
+
+
+def test_swing_arm_ik_reaches_keeps_lengths_and_bends_as_a_hinge(take):
+    """``EndEffectorIK(arm="swing")`` on perturbed real poses: the wrists land on
+    their targets, every bone keeps its length, the rotations stay consistent
+    with the positions, and the elbow stays a hinge: the forearm's turn
+    relative to the upper arm is about the bend plane's normal (the angle
+    between the upper arm's and the forearm's roll changes by no more than
+    the elbow's own flexion), so the forearm does not spin about itself."""
+    gt, rot, bv = take
+    rng = np.random.default_rng(3)
+    ee = EndEffectorIK(arm="swing")
+    worst_roll = 0.0
+    for f in range(0, 600, 12):
+        P, R = _perturb_upper_body(rng, gt[f], rot[f])
+        target = gt[f, TRACKED] + rng.normal(size=(3, 3)) * 0.02  # the tracked points, ±2 cm
+        target[0] = np.nan  # the arms only
+        out, outR = ee.step(P, R, target)
+        assert np.linalg.norm(out[TRACKED[1:]] - target[1:], axis=-1).max() < 1e-6
+        L0 = bone_lengths_from_positions(P[None])[0]
+        assert np.abs(bone_lengths_from_positions(out[None])[0] - L0).max() < 1e-9
+        st_in, st_out = P[np.maximum(PARENTS, 0)], out[np.maximum(PARENTS, 0)]
+        a_in = _angle_between(P[1:] - st_in[1:], np.einsum("nab,nb->na", R[1:], bv[1:]))
+        a_out = _angle_between(out[1:] - st_out[1:], np.einsum("nab,nb->na", outR[1:], bv[1:]))
+        assert np.abs(a_out - a_in).max() < 1e-6
+        for s in "lr":
+            # the forearm's rotation relative to the upper arm, before and after:
+            # a hinge changes it only by a turn about the elbow's axis (the bend
+            # plane's normal), i.e. its angle changes by the flexion change
+            h, r = J[s + "humerus"], J[s + "radius"]
+            rel0, rel1 = R[h].T @ R[r], outR[h].T @ outR[r]
+            d = rel1 @ rel0.T
+            turn = np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1)))
+            sh, el, wr = J[s + "clavicle"], J[s + "humerus"], J[s + "wrist"]
+            flex = [_angle_between(p[el] - p[sh], p[wr] - p[el]) for p in (P, out)]
+            worst_roll = max(worst_roll, turn - abs(np.degrees(flex[1] - flex[0])))
+    print(f"\nswing arm IK: largest forearm turn beyond the elbow's flexion {worst_roll:.2e} deg")
+    assert worst_roll < 1e-4
+
+
+def test_end_effector_ik_rejects_an_unknown_arm_method():
+    with pytest.raises(ValueError, match="arm must be"):
+        EndEffectorIK(arm="ccd")

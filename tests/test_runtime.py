@@ -328,3 +328,34 @@ def test_follower_arms_do_not_flip_in_holds(synth):
         step = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1) / 2, -1, 1)))
         print(f"\n{role}: largest bone turn between frames {step.max():.1f} deg")
         assert step.max() < 60.0, (role, np.unravel_index(np.argmax(step), step.shape))
+
+
+def _largest_turns(duet):
+    out = {}
+    for role in ("leader", "follower"):
+        R = getattr(duet, role + "_rotations")
+        rel = np.einsum("tjik,tjil->tjkl", R[:-1], R[1:])
+        out[role] = float(np.degrees(np.arccos(np.clip((np.trace(rel, axis1=2, axis2=3) - 1) / 2, -1, 1))).max())
+    return out
+
+
+def test_arms_do_not_flip_on_the_sample_take():
+    """The embedded sample take: no bone of either dancer turns more than 60
+    degrees between two 30 Hz frames. The arm IK used to turn the forearm by its
+    own minimal rotation, which is ill-defined near half a turn: where a hand
+    hold pulled her wrist across, her right wrist turned 171 degrees in one
+    frame (frame 286). Now the arm swings about the shoulder and bends as a
+    hinge (``EndEffectorIK(arm="swing")``), and a hold whose goal lies at her
+    shoulder (his hand on her back) fades out. The old arm IK, on the same
+    take, is measured beside it: the test would see the flip."""
+    from dancing_points_addon.follower import FollowerOptions
+
+    take = read_take(ROOT / "dancing_points_addon" / "samples" / "sample_take.csv")
+    new = _largest_turns(Synthesizer().synthesize(take))
+    old_synth = Synthesizer(follower=FollowerOptions(hold_arm_ik="pole", hold_near=0.0))
+    old_synth.ik_options = {**old_synth.ik_options, "arm": "pole"}
+    old_synth.reset()
+    old = _largest_turns(old_synth.synthesize(take))
+    print(f"\nlargest bone turn between frames (deg): {new} with the swing-and-hinge arm IK, {old} with the old")
+    assert max(new.values()) < 60.0
+    assert old["follower"] > 90.0
