@@ -339,11 +339,7 @@ def _frame_s(ux, uy, uz, nx, ny, nz):
 
 def _align_s(F0, F1):
     """The rotation taking frame ``F0`` onto ``F1`` (rows as from :func:`_frame_s`): F1ᵀ F0."""
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = F0
-    b0, b1, b2, b3, b4, b5, b6, b7, b8 = F1
-    return (b0 * a0 + b3 * a3 + b6 * a6, b0 * a1 + b3 * a4 + b6 * a7, b0 * a2 + b3 * a5 + b6 * a8,
-            b1 * a0 + b4 * a3 + b7 * a6, b1 * a1 + b4 * a4 + b7 * a7, b1 * a2 + b4 * a5 + b7 * a8,
-            b2 * a0 + b5 * a3 + b8 * a6, b2 * a1 + b5 * a4 + b8 * a7, b2 * a2 + b5 * a5 + b8 * a8)
+    return mat_mul((F1[0], F1[3], F1[6], F1[1], F1[4], F1[7], F1[2], F1[5], F1[8]), F0)
 
 
 def _hinge_turns(sh, el, wr, nel, nwr, R1, R2, straight=0.05):
