@@ -81,7 +81,9 @@ class FollowerOptions:
     hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (0: exponential smoothing)
     hold_soft_rate: float = 0.05  # the soft partner's weights change by at most this much a frame (0: free)
     hold_arm_ik: str = "swing"  # her arm IK under a hold (``ik.EndEffectorIK``'s ``arm``): "swing" or "pole"
-    hold_near: float = 0.4  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1;
+    hold_reach: float = 1.1  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
+    # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward)
+    hold_near: float = 0.35  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1;
     # his hand at her shoulder is his hand on her back, not a hold; 0: never)
     # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md): a planted
     # foot holds until her predicted foot is ``lock_drift`` m from it, then steps at least
@@ -243,7 +245,9 @@ class HandHold:
     damped spring of ``hold_spring`` Hz, so its acceleration is bounded and the
     arm does not jerk when a hold starts, ends or changes partner (the hold's
     jitter, 258 → 176 m/s³ on val). One pair per follower hand; a hold her arm
-    cannot reach fades out instead of wrenching the shoulder, and so does one
+    cannot reach (past ``hold_reach`` of its length from her shoulder; her
+    clavicle helps beyond its length) fades out instead of wrenching the
+    shoulder, and so does one
     whose goal is within ``hold_near`` of her arm's length from her shoulder
     (his hand on her back: folding her wrist onto her own shoulder flipped
     her arm)."""
@@ -317,9 +321,9 @@ class HandHold:
             v = sh - lw
             n = float(np.sqrt(v @ v))
             goal = lw + (v / n * o.hold_gap if n > 1e-6 else 0.0)
-            # within reach of her shoulder: full weight up to 90 % of the arm, none past 100 %
+            # within reach of her shoulder: full weight up to hold_reach - 0.1 of the arm, none past hold_reach
             reach = float(np.sqrt((goal - sh) @ (goal - sh))) / max(float(arm_length[j]), 1e-6)
-            w = self.weight[j] * min(max((1.0 - reach) / 0.1, 0.0), 1.0)
+            w = self.weight[j] * min(max((o.hold_reach - reach) / 0.1, 0.0), 1.0)
             if o.hold_near > 0:
                 # his hand at her shoulder (his hand on her back, not a hand hold):
                 # her wrist is not folded onto her own shoulder
