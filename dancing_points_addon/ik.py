@@ -10,7 +10,10 @@ independently. This module turns them into what a user sees:
 * :class:`~.foot_lock.FootLocker` (in ``foot_lock``) removes residual foot sliding with the predicted foot
   contacts: a causal, streaming foot lock solved with two-bone leg IK.
 * :class:`EndEffectorIK` (optional "hand/head IK") pulls the leader's head and
-  wrists onto the tracked three-point signal.
+  wrists onto the tracked three-point signal, and the follower's wrists onto
+  the leader's hands in a hold. Its arms swing about the shoulder and bend as
+  a hinge (``arm="swing"``), so a forearm does not spin about itself when a
+  target pulls the wrist across.
 
 Every IK step edits positions and rotations *consistently*: when a bone's
 direction changes by a rotation ``D``, its global rotation becomes ``D · R``.
