@@ -244,13 +244,12 @@ class HandHold:
     (her wrist's offset from where her tracker puts it) follows a critically
     damped spring of ``hold_spring`` Hz, so its acceleration is bounded and the
     arm does not jerk when a hold starts, ends or changes partner (the hold's
-    jitter, 258 → 176 m/s³ on val). One pair per follower hand; a hold her arm
-    cannot reach (past ``hold_reach`` of its length from her shoulder; her
+    jitter, 258 → 176 m/s³ on val). One pair per follower hand. A hold her
+    arm cannot reach (past ``hold_reach`` of its length from her shoulder; her
     clavicle helps beyond its length) fades out instead of wrenching the
-    shoulder, and so does one
-    whose goal is within ``hold_near`` of her arm's length from her shoulder
-    (his hand on her back: folding her wrist onto her own shoulder flipped
-    her arm)."""
+    shoulder, and so does one whose goal is within ``hold_near`` of her arm's
+    length from her shoulder (his hand on her back: folding her wrist onto her
+    own shoulder flipped her arm)."""
 
     SHOULDERS = (JOINT_INDEX["lclavicle"], JOINT_INDEX["rclavicle"])
 

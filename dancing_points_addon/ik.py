@@ -506,10 +506,11 @@ class EndEffectorIK:
     def _swing_hinge(cls, sh, el, wr, target):
         """Swing the whole arm about the shoulder by a fraction of the minimal
         rotation aiming its shoulder→wrist line at the target — all of it when
-        the wrist is at least 40 % of the arm from the shoulder, none under
-        20 % (a folded arm, where that line's direction is ill-defined) — then
-        two-bone IK from the swung arm with its elbow as the pole, each bone
-        turning as a hinge (:func:`_hinge_turns`)."""
+        the wrist is at least 40 % of the arm from the shoulder and the swing
+        is at most 120°; none when the wrist is under 20 % (a folded arm,
+        where that line's direction is ill-defined) or the swing 160° or more
+        (where its axis is) — then two-bone IK from the swung arm with its
+        elbow as the pole, each bone turning as a hinge (:func:`_hinge_turns`)."""
         u, l, w = _sub3(el, sh), _sub3(wr, el), _sub3(wr, sh)
         arm = sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) + sqrt(l[0] ** 2 + l[1] ** 2 + l[2] ** 2)
         wn = sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
