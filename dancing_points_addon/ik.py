@@ -233,6 +233,23 @@ def mat_mul(A, B):
 def two_bone_s(hip, knee, ankle, target, pole):
     """Scalar :func:`two_bone_ik` on 3-sequences: ``(knee', ankle', R1, R2)``
     (points as 3-tuples, rotations as row-major 9-tuples)."""
+    nk, na = two_bone_points_s(hip, knee, ankle, target, pole)
+    return (nk, na) + _minimal_turns(hip, knee, ankle, nk, na)
+
+
+def _minimal_turns(hip, knee, ankle, nk, na):
+    """The minimal rotations taking the bones (hip→knee, knee→ankle) onto
+    (hip→nk, nk→na): the upper bone's, then the lower one's after it."""
+    ux, uy, uz = knee[0] - hip[0], knee[1] - hip[1], knee[2] - hip[2]
+    lx, ly, lz = ankle[0] - knee[0], ankle[1] - knee[1], ankle[2] - knee[2]
+    R1 = rot_between_s(ux, uy, uz, nk[0] - hip[0], nk[1] - hip[1], nk[2] - hip[2])
+    rx, ry, rz = mat_vec(R1, lx, ly, lz)
+    S = rot_between_s(rx, ry, rz, na[0] - nk[0], na[1] - nk[1], na[2] - nk[2])
+    return R1, mat_mul(S, R1)
+
+
+def two_bone_points_s(hip, knee, ankle, target, pole):
+    """The new (knee, ankle) of :func:`two_bone_s`."""
     hx, hy, hz = hip
     kx, ky, kz = knee
     ax, ay, az = ankle
@@ -268,12 +285,8 @@ def two_bone_s(hip, knee, ankle, target, pole):
             bx, by, bz = ex - s * nx, ey - s * ny, ez - s * nz
             bn = sqrt(bx * bx + by * by + bz * bz)
     bx /= bn; by /= bn; bz /= bn
-    nkx, nky, nkz = hx + a * nx + h * bx, hy + a * ny + h * by, hz + a * nz + h * bz
-    nax, nay, naz = hx + D * nx, hy + D * ny, hz + D * nz
-    R1 = rot_between_s(ux, uy, uz, nkx - hx, nky - hy, nkz - hz)
-    rx, ry, rz = mat_vec(R1, lx, ly, lz)
-    S = rot_between_s(rx, ry, rz, nax - nkx, nay - nky, naz - nkz)
-    return (nkx, nky, nkz), (nax, nay, naz), R1, mat_mul(S, R1)
+    return ((hx + a * nx + h * bx, hy + a * ny + h * by, hz + a * nz + h * bz),
+            (hx + D * nx, hy + D * ny, hz + D * nz))
 
 
 def smooth01(x):
@@ -345,14 +358,14 @@ def _align_s(F0, F1):
     return mat_mul((F1[0], F1[3], F1[6], F1[1], F1[4], F1[7], F1[2], F1[5], F1[8]), F0)
 
 
-def _hinge_turns(sh, el, wr, nel, nwr, R1, R2, straight=0.05):
+def _hinge_turns(sh, el, wr, nel, nwr, straight=0.05):
     """The turns of a two-bone arm as a hinge: each bone's rotation takes its
     old (direction, bend-plane normal) frame onto the new one, so the elbow's
     normal is carried over and the forearm's roll follows the upper arm's —
     a minimal rotation of the forearm alone is ill-defined when it has to turn
     by nearly half a turn, and flips. An arm (old or new) straighter than
-    ``straight`` (sine of the elbow angle) keeps the minimal rotations
-    ``R1, R2`` given."""
+    ``straight`` (sine of the elbow angle) turns by the minimal rotations
+    (:func:`_minimal_turns`)."""
     u = _sub3(el, sh); l = _sub3(wr, el)
     u2 = _sub3(nel, sh); l2 = _sub3(nwr, nel)
     n = (u[1] * l[2] - u[2] * l[1], u[2] * l[0] - u[0] * l[2], u[0] * l[1] - u[1] * l[0])
@@ -360,13 +373,12 @@ def _hinge_turns(sh, el, wr, nel, nwr, R1, R2, straight=0.05):
     lu = sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) * sqrt(l[0] ** 2 + l[1] ** 2 + l[2] ** 2)
     nn = sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2)
     nn2 = sqrt(n2[0] ** 2 + n2[1] ** 2 + n2[2] ** 2)
-    if lu < 1e-12 or nn < straight * lu or nn2 < straight * lu:
-        return R1, R2
-    Fu, Fu2 = _frame_s(*u, *n), _frame_s(*u2, *n2)
-    Fl, Fl2 = _frame_s(*l, *n), _frame_s(*l2, *n2)
-    if Fu is None or Fu2 is None or Fl is None or Fl2 is None:
-        return R1, R2
-    return _align_s(Fu, Fu2), _align_s(Fl, Fl2)
+    if lu >= 1e-12 and nn >= straight * lu and nn2 >= straight * lu:
+        Fu, Fu2 = _frame_s(*u, *n), _frame_s(*u2, *n2)
+        Fl, Fl2 = _frame_s(*l, *n), _frame_s(*l2, *n2)
+        if Fu is not None and Fu2 is not None and Fl is not None and Fl2 is not None:
+            return _align_s(Fu, Fu2), _align_s(Fl, Fl2)
+    return _minimal_turns(sh, el, wr, nel, nwr)
 
 
 class EndEffectorIK:
@@ -527,8 +539,8 @@ class EndEffectorIK:
                 Q = rot_scale(Q, beta)
             el = _about(el, sh, Q, sh)
             wr = _about(wr, sh, Q, sh)
-        nel, nwr, R1, R2 = two_bone_s(sh, el, wr, target, el)
-        R1, R2 = _hinge_turns(sh, el, wr, nel, nwr, R1, R2)
+        nel, nwr = two_bone_points_s(sh, el, wr, target, el)
+        R1, R2 = _hinge_turns(sh, el, wr, nel, nwr)
         if beta > 0.0:
             R1, R2 = mat_mul(R1, Q), mat_mul(R2, Q)
         return nel, nwr, R1, R2
