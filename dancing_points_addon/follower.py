@@ -85,20 +85,32 @@ class FollowerOptions:
     # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward)
     hold_near: float = 0.35  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1;
     # his hand at her shoulder is his hand on her back, not a hold; 0: never)
-    # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md): a planted
-    # foot holds until her predicted foot is ``lock_drift`` m from it, then steps at least
-    # ``step_height`` m high over ``lock_blend`` frames; a foot that plants stays where it was on
-    # the last frame (``land_still``: it does not slide into the lock) and is put at most
-    # ``lock_floor`` m above her floor (the lowest each foot point has been lately; < 0: where it
-    # is), once it moves slower than ``engage_speed`` m/s (0: at once); a free foot moving fast is
-    # lifted ``clearance`` m off her floor (0: not)
-    lock_drift: float = 0.2
-    step_height: float = 0.10
+    # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md, "Her steps,
+    # timed by a contact network"): with ``lock_contacts`` "net" her foot points plant and lift
+    # as the contact network says (hysteresis ``lock_on`` / ``lock_off`` on its probabilities),
+    # on her floor (its floor levels, from the train split); "tracker": her tracker's own
+    # contact output and the kinematic evidence, on the lowest each foot point has been lately.
+    # A planted foot holds until her predicted foot is ``lock_drift`` m from it; a release is a
+    # catch-up step of ``step_frames`` frames, at least ``step_height`` m high (at most
+    # ``step_max``); a lock blends in over ``lock_blend`` frames; a foot that plants stays where
+    # it was on the last frame (``land_still``) and is put at most ``lock_floor`` m above her
+    # floor (< 0: where it is), once it moves slower than ``engage_speed`` m/s (0: at once); a
+    # free foot moving fast is lifted ``clearance`` m off her floor (0: not)
+    lock_contacts: str = "net"
+    contact_smooth: float = 0.5
+    lock_on: float = 0.4
+    lock_off: float = 0.3
+    lock_drift: float = 0.3
+    step_height: float = 0.04
+    step_max: float = 0.06
+    step_frames: int = 7
+    lift_ball: bool = True
     lock_blend: int = 10
     lock_floor: float = 0.01
     land_still: bool = True
     clearance: float = 0.05
-    engage_speed: float = 0.5
+    clear_rate: float = 0.0625
+    engage_speed: float = 0.0
 
 
 class Placement:

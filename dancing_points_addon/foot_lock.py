@@ -77,7 +77,8 @@ class FootLocker:
     prediction is bent.
     A full release is a catch-up *step*, not a slide: while the leg blends
     back, the ankle is kept at least ``step_height · sin(π k / N)`` above its
-    planted height (k frames since the release; ``step_height`` grows with the
+    planted height (k frames since the release, N = ``step_frames``, by default
+    ``blend_frames``; ``step_height`` grows with the
     distance to travel: ``clamp(step_scale · d, step_height, step_max)``), so
     the foot leaves the floor on the first frame and lands on the last,
     instead of skating along it; no point locks while the step is in the air.
@@ -93,19 +94,23 @@ class FootLocker:
     locks stays where it was on the last frame instead of carrying that
     frame's motion into the lock; ``clearance`` (m): a free foot moving
     faster than ``clear_speed[0]`` m/s is lifted off its floor, fully from
-    ``clear_speed[1]`` (see :meth:`_swing`).
+    ``clear_speed[1]``, the lift changing by at most ``clear_rate × clearance``
+    a frame (see :meth:`_swing`).
     """
 
     def __init__(self, on: float = 0.6, off: float = 0.4, blend_frames: int = 8,
                  max_drift: float = 0.15, floor=None, pole_forward: float = 0.1,
                  step_height: float = 0.06, step_scale: float = 0.3, step_max: float = 0.12,
                  clearance: float = 0.0, clear_speed=(0.3, 0.6), land_still: bool = False,
-                 engage_speed: float = 0.0):
+                 engage_speed: float = 0.0, step_frames: int | None = None, clear_rate: float = 0.25,
+                 lift_ball: bool = False):
         if not off <= on:
             raise ValueError("off threshold must not exceed the on threshold")
         self.on = float(on)
         self.off = float(off)
         self.blend_frames = max(int(blend_frames), 1)
+        # the catch-up step's length (frames; None: ``blend_frames``)
+        self.step_frames = self.blend_frames if step_frames is None else max(int(step_frames), 1)
         self.max_drift = float(max_drift)
         self.pole_forward = float(pole_forward)
         self.step_height, self.step_scale, self.step_max = float(step_height), float(step_scale), float(step_max)
@@ -113,6 +118,8 @@ class FootLocker:
         self.land_still = bool(land_still)
         self.engage_speed = float(engage_speed)
         self.clear_speed = (float(clear_speed[0]), float(clear_speed[1]))
+        self.lift_ball = bool(lift_ball)
+        self.clear_rate = float(clear_rate)  # the swing clearance's lift changes by at most this share a frame
         # each side's last output (ankle, ball) is kept for the options that need its speed
         self._keep_prev = self.clearance > 0.0 or self.land_still or self.engage_speed > 0.0
         self.floor = None if floor is None else [float(x) for x in np.asarray(floor).reshape(4)]
@@ -170,7 +177,8 @@ class FootLocker:
     def _side(self, st: _Side, rows, ca: float, cb: float, fa, fb, fwd):
         hip, knee, a, b, toe = rows
         fx, fy, fz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-        N = self.blend_frames
+        N = self.blend_frames  # a lock's blend
+        NS = self.step_frames  # a release's catch-up step
         # hysteresis switches
         if st.on_a:
             if ca < self.off:
@@ -179,14 +187,14 @@ class FootLocker:
             st.on_a = True
         # a drift-released point may lock again once its release blend is over
         # (a sliding prediction with a steady contact then gets re-planted)
-        if not st.on_a or (st.lock_a is None and st.k >= N):
+        if not st.on_a or (st.lock_a is None and st.k >= NS):
             st.armed_a = True
         if st.on_b:
             if cb < self.off:
                 st.on_b = False
         elif cb > self.on:
             st.on_b = True
-        if not st.on_b or (st.lock_b is None and st.k >= N):
+        if not st.on_b or (st.lock_b is None and st.k >= NS):
             st.armed_b = True
 
         la, lb = st.lock_a, st.lock_b
@@ -205,7 +213,7 @@ class FootLocker:
                 new_b = None
                 st.armed_b = False
         # no new lock while a catch-up step is in the air: the foot lands first
-        stepping = la is None and lb is None and st.lift is not None and st.k < N
+        stepping = la is None and lb is None and st.lift is not None and st.k < NS
         engage_a = new_a is None and st.on_a and st.armed_a and not stepping
         engage_b = new_b is None and st.on_b and st.armed_b and not stepping
         if self.engage_speed > 0.0 and st.prev is not None and (engage_a or engage_b):
@@ -214,13 +222,14 @@ class FootLocker:
             engage_a = engage_a and _moved2(a, st.prev[0]) < lim
             engage_b = engage_b and _moved2(b, st.prev[1]) < lim
         free_old = la is None and lb is None
-        if free_old and st.k >= N and not (engage_a or engage_b):
+        if free_old and st.k >= NS and not (engage_a or engage_b):
             return self._swing(st, rows, fa, fb, fwd)  # free and settled: the prediction (lifted when fast)
 
         if engage_a or engage_b or new_a is not la or new_b is not lb:
             # a transition: the current output under the old mode is the
             # continuity reference
-            w = 1.0 - smooth01(st.k / N) if st.k < N else 0.0
+            Nw = NS if free_old else N
+            w = 1.0 - smooth01(st.k / Nw) if st.k < Nw else 0.0
             if free_old:
                 if w > 0.0 and st.rb is not None:
                     D1, D2, D3 = (rot_scale(D, w) for D in st.rb)
@@ -258,7 +267,8 @@ class FootLocker:
                 st.rb = self._solve(rows, T_old, F_old, fwd)[1]
                 d = sqrt((T_old[0] - a[0]) ** 2 + (T_old[2] - a[2]) ** 2)
                 h = min(max(self.step_scale * d, self.step_height), self.step_max)
-                st.lift = (T_old[1], h) if h > 0.0 else None
+                # (planted ankle height, step height, planted ball height)
+                st.lift = (T_old[1], h, T_old[1] + F_old[1]) if h > 0.0 else None
             else:
                 st.rb = None
                 T, F = self._mode(new_a, new_b, a, fx, fy, fz)
@@ -267,16 +277,19 @@ class FootLocker:
 
         if new_a is None and new_b is None:
             # free, blending the last IK deltas out (rotation space)
-            if st.rb is None or st.k >= N:
-                st.k = N
+            if st.rb is None or st.k >= NS:
+                st.k = max(N, NS)
                 return None
-            w = 1.0 - smooth01(st.k / N)
             st.k += 1
+            w = 1.0 - smooth01((st.k - 1) / NS)
             D1, D2, D3 = (rot_scale(D, w) for D in st.rb)
             pts = self._fk(rows, D1, D2, D3)
             if st.lift is not None:
-                y = st.lift[0] + st.lift[1] * sin(pi * st.k / N)
+                lift = st.lift[1] * sin(pi * st.k / NS)
+                y = st.lift[0] + lift
                 na, nb = pts[1], pts[2]
+                if self.lift_ball:  # the whole foot leaves the floor: its ball too, however it is turned
+                    y = na[1] + max(y - na[1], st.lift[2] + lift - nb[1])
                 if na[1] < y:  # lift the ankle (the foot keeps its blended orientation)
                     T = (na[0], y, na[2])
                     pts, (R1, R2, R3) = self._solve(rows, T, (nb[0] - na[0], nb[1] - na[1], nb[2] - na[2]), fwd)
@@ -299,7 +312,7 @@ class FootLocker:
         points are ``clearance`` above their floor levels at full speed
         (``clear_speed[1]`` m/s and over), none at ``clear_speed[0]`` and under
         (smoothstep between; the speed is the horizontal one since the last
-        output); the lift changes by at most ``clearance / 4`` a frame. None:
+        output); the lift changes by at most ``clear_rate · clearance`` a frame. None:
         the prediction passes through."""
         c = self.clearance
         st.need = 0.0
@@ -310,7 +323,8 @@ class FootLocker:
         v = FPS * sqrt(max(_moved2(a, st.prev[0]), _moved2(b, st.prev[1])))
         v0, v1 = self.clear_speed
         goal = c * smooth01((v - v0) / max(v1 - v0, 1e-9))
-        h = st.clear + min(max(goal - st.clear, -0.25 * c), 0.25 * c)
+        r = self.clear_rate * c
+        h = st.clear + min(max(goal - st.clear, -r), r)
         st.clear = h
         need = max(fa + h - a[1], fb + h - b[1])
         if h <= 0.0 or need <= 0.0:

@@ -15,7 +15,8 @@ from .errors import InputError, UserError
 
 MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
-MODEL_FILES = {"mapping": "mapping.onnx", "leader": "tracker_leader.onnx", "follower": "tracker_follower.onnx"}
+MODEL_FILES = {"mapping": "mapping.onnx", "contacts": "contacts.onnx", "leader": "tracker_leader.onnx",
+               "follower": "tracker_follower.onnx"}
 
 
 class ModelError(UserError):
@@ -108,7 +109,7 @@ def load_nets(model_dir=None, threads: int = 1) -> dict:
 
 def check_models(model_dir=None, threads: int = 1) -> str:
     """Check a models folder once, before any work (the command line and the batch
-    call it at start-up): the three files exist, load in ONNX Runtime, take and
+    call it at start-up): the four files exist, load in ONNX Runtime, take and
     give the sizes of this version's feature layout (``features.layout``) and
     carry the metadata the runtime needs. Returns the folder; a
     :class:`UserError` (one line, naming the folder or file) otherwise."""
@@ -119,7 +120,7 @@ def check_models(model_dir=None, threads: int = 1) -> str:
     nets = load_nets(model_dir, threads)
     d = resolve_model_dir(model_dir)
     want = F.layout()
-    sizes = {"mapping": (want["map_in"], None), "leader": (want["track_in"], None),
+    sizes = {"mapping": (want["map_in"], None), "contacts": (want["map_in"], None), "leader": (want["track_in"], None),
              "follower": (want["track_in"], None)}
     for kind, net in nets.items():
         path = os.path.join(d, MODEL_FILES[kind])
@@ -136,6 +137,14 @@ def check_models(model_dir=None, threads: int = 1) -> str:
         n_in = net.session.get_inputs()[0].shape[-1]
         if isinstance(n_in, int) and n_in != sizes[kind][0]:
             raise ModelError(f"{path}: takes {n_in} inputs, the {kind} network needs {sizes[kind][0]}")
-        if kind != "mapping" and "default_pose" not in net.meta:
+        if kind in ("leader", "follower") and "default_pose" not in net.meta:
             raise ModelError(f"{path}: no default_pose in its metadata")
+        if kind == "contacts":
+            try:
+                floors = json.loads(net.meta.get("floor_levels", "null"))
+                ok = all(len(floors[r]) == 4 for r in ("leader", "follower"))
+            except (ValueError, TypeError, KeyError):
+                ok = False
+            if not ok:
+                raise ModelError(f"{path}: no floor_levels (four per dancer) in its metadata")
     return d

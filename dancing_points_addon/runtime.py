@@ -198,7 +198,7 @@ RECENTRE_POSE = (0.05, True)
 
 
 class Synthesizer:
-    """Holds the three ONNX sessions and the rollout state.
+    """Holds the four ONNX sessions and the rollout state.
 
     ``options``: a :class:`SynthesisOptions`; ``nets``: already loaded networks
     (default: :func:`~.nets.load_nets` of ``options.models``); ``follower``: the
@@ -232,11 +232,20 @@ class Synthesizer:
         self.bone_vectors = {r: bone_vectors_from_pose(F.pose_positions(p), F.pose_rotations(p))
                              for r, p in self.default_pose.items()}
         self._recovery = (PoseRecovery(self.bone_vectors["leader"]), PoseRecovery(self.bone_vectors["follower"]))
+        # each dancer's floor level per foot point (training scale), from the contact network
+        self.floor_levels = self._floor_levels(nets.get("contacts"))
         # the follower's arm lengths (shoulder to wrist), for hand holds
         bl = np.linalg.norm(self.bone_vectors["follower"], axis=-1)
         self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
                                    + bl[JOINT_INDEX[s + "wrist"]] for s in "lr"])
         self.reset()
+
+    @staticmethod
+    def _floor_levels(net):
+        meta = getattr(net, "meta", {}) or {}
+        if net is None or "floor_levels" not in meta:
+            return None
+        return {r: [float(v) for v in f] for r, f in json.loads(meta["floor_levels"]).items()}
 
     @staticmethod
     def _default_pose(net):
@@ -263,19 +272,32 @@ class Synthesizer:
         self._lockers = None
         self._effector = None
         fo = self.follower_options
+        # her steps timed by the contact network (``FollowerOptions.lock_contacts``)
+        self._net_steps = bool(self.foot_lock and fo is not None and fo.lock_contacts == "net")
+        if self._net_steps and ("contacts" not in self.nets or self.floor_levels is None):
+            raise ValueError("FollowerOptions.lock_contacts='net' needs the contact network (contacts.onnx "
+                             "with floor_levels in its metadata)")
+        if fo is not None and fo.lock_contacts not in ("net", "tracker"):
+            raise ValueError(f"FollowerOptions.lock_contacts must be 'net' or 'tracker', not {fo.lock_contacts!r}")
         self._placement = Placement(fo) if fo is not None else None
         self._separation = Separation(fo.min_distance) if fo is not None else None
         self._hold = HandHold(fo) if fo is not None and fo.hold else None
         self._fol_target = None  # (offset from the leader, world root) this frame
+        self._contact_p = None  # the contact network's probabilities this frame (leader 4, follower 4)
         self._fol_effector = None
         if self.foot_lock or self.hand_ik:
             from . import ik
             if self.foot_lock:
                 from .foot_lock import FootLocker
                 fol = {} if fo is None else {"max_drift": fo.lock_drift, "step_height": fo.step_height,
+                                            "step_max": fo.step_max, "step_frames": fo.step_frames,
+                                            "clear_rate": fo.clear_rate, "lift_ball": fo.lift_ball,
                                             "clearance": fo.clearance, "land_still": fo.land_still,
-                                            "blend_frames": fo.lock_blend, "engage_speed": fo.engage_speed}
+                                            "blend_frames": fo.lock_blend, "engage_speed": fo.engage_speed,
+                                            "on": fo.lock_on, "off": fo.lock_off}
                 self._lockers = (FootLocker(), FootLocker(**fol))
+                if self._net_steps and fo.lock_floor >= 0:  # her locks go on her floor (the train split's)
+                    self._lockers[1].floor = [f + fo.lock_floor for f in self.floor_levels["follower"]]
             if self.hand_ik:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
         if self._hold is not None:
@@ -371,7 +393,14 @@ class Synthesizer:
             self.hist_tracked[:-1] = self.hist_tracked[1:]
             self.hist_roots[-1] = root
             self.hist_tracked[-1] = tracked_s
-        y = self.nets["mapping"](F.mapping_input(self.hist_roots[None], self.hist_tracked[None]))
+        x = F.mapping_input(self.hist_roots[None], self.hist_tracked[None])
+        y = self.nets["mapping"](x)
+        if self._net_steps:
+            p = self.nets["contacts"](x)[0].astype(np.float64)
+            b = self.follower_options.contact_smooth
+            if b > 0.0 and self._contact_p is not None:
+                p = b * self._contact_p + (1.0 - b) * p
+            self._contact_p = p
         (l_roots, l_tr), (f_roots, f_tr) = F.decode_mapping(y, root[None])
         l_roots, l_tr, f_roots, f_tr = l_roots[0], l_tr[0], f_roots[0], f_tr[0]
         self.prev_leader_pred = (l_roots[0], l_tr[0])
@@ -409,6 +438,8 @@ class Synthesizer:
             d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
         lp, lr = self._recover(0, *rigid[0], lc, tracked_s)
         fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
+        if self._net_steps:  # her contacts are what timed her steps
+            fc = self._contact_p[4:]
         self.t += 1
         if s != 1.0:
             lp, fp = lp * (1.0 / s), fp * (1.0 / s)
@@ -419,10 +450,14 @@ class Synthesizer:
         B: a consistent skeleton pose): foot locking, then head/wrist IK (the
         leader's on the input, the follower's hands in a hold)."""
         if self._lockers is not None:
-            contacts = np.maximum(contacts, self._kinematic_contacts(who, pos))
             fo = self.follower_options
-            if who == 1 and fo is not None and fo.lock_floor >= 0:  # her new locks go on her floor
-                self._lockers[1].floor = [f + fo.lock_floor for f in self._floor[1]]
+            if who == 1 and self._net_steps:
+                # her steps: planted and lifted as the contact network says, on her floor
+                contacts = self._contact_p[4:]
+            else:
+                contacts = np.maximum(contacts, self._kinematic_contacts(who, pos))
+                if who == 1 and fo is not None and fo.lock_floor >= 0:  # her new locks go on her floor
+                    self._lockers[1].floor = [f + fo.lock_floor for f in self._floor[1]]
             pos, rot = self._lockers[who].step(pos, rot, contacts)
         if targets is not None:
             effector = self._effector if who == 0 else self._fol_effector

@@ -424,6 +424,68 @@ def test_foot_locker_relock_during_a_step_lands_smoothly(take):
     assert abs(out[rel + N + 2, ankle, 1] - P[rel + N + 2, ankle, 1]) < 1e-3  # landed on the prediction
 
 
+def _drifting_lock(take, T=60):
+    """A standing frame whose left foot (prediction) slides 60 cm forward over
+    2 s with its ankle and ball contact on all along: the lock drifts and is
+    released into catch-up steps."""
+    gt, rot, _ = take
+    P = np.repeat(gt[100:101], T, axis=0)
+    R = np.repeat(rot[100:101], T, axis=0)
+    P[:, [J["ltibia"], J["lfoot"], J["ltoes"]]] += np.linspace(0, 0.6, T)[:, None, None] * [1.0, 0, 0]
+    C = np.zeros((T, 4))
+    C[:, 0] = C[:, 1] = 0.9
+    return P, R, C
+
+
+def test_foot_locker_step_frames_sets_the_catch_up_steps_length(take):
+    """``step_frames`` is the catch-up step's length apart from the lock's blend:
+    after a drift release the foot is in the air for that many frames, then the
+    point locks again on landing (with the default, ``blend_frames``, it is in
+    the air for ``blend_frames``)."""
+    P, R, C = _drifting_lock(take)
+    for kw, n in (({}, 10), ({"step_frames": 5}, 5), ({"step_frames": 14}, 14)):
+        locks = _run_locker(FootLocker(blend_frames=10, max_drift=0.1, **kw), P, R, C)[2]
+        released = [t for t in range(1, len(P)) if locks[t - 1][0][0] is not None and locks[t][0][0] is None]
+        relocked = [next(u for u in range(t, len(P)) if locks[u][0][0] is not None) for t in released[:-1]]
+        assert released and relocked
+        assert all(u - t == n for t, u in zip(released, relocked)), (kw, released, relocked)
+
+
+def test_foot_locker_lift_ball_lifts_the_whole_foot(take):
+    """A catch-up step whose predicted foot turns toes-down as it leaves (the ball
+    4 cm lower than where it was planted): the ankle is lifted either way, but
+    only with ``lift_ball`` does the ball leave the floor too (at least
+    ``step_height · sin(π k / N)`` over where it was planted, k frames into the
+    step); without it the ball drags along under its planted height (SPEC §6
+    counts that as skating)."""
+    P, R, C = _drifting_lock(take)
+    ankle, ball = J["ltibia"], J["lfoot"]
+    N, h = 7, 0.04
+    worst = {}
+    for lift_ball in (True, False):
+        locker = FootLocker(blend_frames=10, step_frames=N, step_height=h, step_max=h, max_drift=0.1,
+                            lift_ball=lift_ball)
+        locks = _run_locker(locker, P, R, C)[2]
+        t = next(t for t in range(1, len(P)) if locks[t - 1][0] != (None, None) and locks[t][0] == (None, None))
+        Q = P.copy()
+        Q[t:, [ball, J["ltoes"]], 1] -= 0.04  # toes down from the release on
+        locker = FootLocker(blend_frames=10, step_frames=N, step_height=h, step_max=h, max_drift=0.1,
+                            lift_ball=lift_ball)
+        out, _, locks = _run_locker(locker, Q, R, C)
+        assert locks[t - 1][0] != (None, None) and locks[t][0] == (None, None)
+        a0, b0 = out[t - 1, ankle, 1], out[t - 1, ball, 1]  # planted heights
+        gaps = []
+        for k in range(1, N):  # frame t + k - 1 is k frames into the step
+            lift = h * np.sin(np.pi * k / N)
+            assert out[t + k - 1, ankle, 1] >= a0 + lift - 1e-6
+            gaps.append(out[t + k - 1, ball, 1] - (b0 + lift))
+        worst[lift_ball] = min(gaps)
+    print(f"\nball over its planted height + the step's lift, worst frame (cm): with lift_ball "
+          f"{worst[True] * 100:.2f}, without {worst[False] * 100:.2f}")
+    assert worst[True] >= -1e-6
+    assert worst[False] < -0.01
+
+
 def _swinging_foot(take, T=40, speed=0.9):
     """The left foot of a standing frame swept forward along the floor at
     ``speed`` m/s (prediction), everything else still."""
@@ -452,6 +514,19 @@ def test_foot_locker_clearance_lifts_a_fast_free_foot(take):
     slow, _ = _swinging_foot(take, speed=0.25)
     out2, _, _ = _run_locker(FootLocker(floor=floor, clearance=0.05), slow, R, np.zeros((len(P), 4)))
     assert np.allclose(out2, slow)
+
+
+def test_foot_locker_clear_rate_sets_how_fast_the_clearance_rises(take):
+    """``clear_rate``: the swing clearance's lift changes by at most that share of
+    ``clearance`` a frame (a sixteenth: 3 mm a frame for 5 cm), and still gets
+    there."""
+    P, R = _swinging_foot(take, T=40)
+    ankle, ball = J["ltibia"], J["lfoot"]
+    floor = [P[0, ankle, 1], P[0, ball, 1], P[0, J["rtibia"], 1], P[0, J["rfoot"], 1]]
+    out, _, _ = _run_locker(FootLocker(floor=floor, clearance=0.05, clear_rate=1 / 16), P, R, np.zeros((40, 4)))
+    lift = np.minimum(out[:, ankle, 1] - floor[0], out[:, ball, 1] - floor[1])
+    assert np.abs(np.diff(lift)).max() <= 0.05 / 16 + 1e-6
+    assert np.all(lift[20:] > 0.05 - 1e-6)
 
 
 def test_foot_locker_land_still_plants_where_the_foot_was(take):

@@ -313,6 +313,13 @@ def bad_models(tmp_path):
         for f in nets.MODEL_FILES.values():
             shutil.copy(os.path.join(MODELS, f), d / f)
         bad = d / nets.MODEL_FILES["leader"]
+        if kind == "old folder":  # made before the contact network: the message names what is missing
+            (d / nets.MODEL_FILES["contacts"]).unlink()
+            return d, "missing contacts.onnx"
+        if kind == "contacts without floors":  # loads, takes the mapping's input, but has no floor levels
+            bad = d / nets.MODEL_FILES["contacts"]
+            shutil.copy(os.path.join(MODELS, nets.MODEL_FILES["mapping"]), bad)
+            return d, bad
         if kind == "empty":
             bad.write_bytes(b"")
         elif kind == "truncated":
@@ -324,7 +331,7 @@ def bad_models(tmp_path):
     return make
 
 
-@pytest.mark.parametrize("kind", ["empty", "truncated", "foreign"])
+@pytest.mark.parametrize("kind", ["empty", "truncated", "foreign", "old folder", "contacts without floors"])
 def test_synthesize_names_the_bad_model_file(tmp_path, bad_models, kind):
     """A damaged model gave exit 1 and ONNX Runtime's (or a ValueError's) text. Now
     one line naming the file, exit 2, through --models and $DP_MODEL_DIR alike."""

@@ -11,9 +11,9 @@ import torch
 from dancing_points_addon import features as F
 from training.dataset import build_clips, split_range
 from training import train as T
-from training.data import default_pose, mapping_samples, tracking_samples
+from training.data import contact_samples, default_pose, floor_levels_of, mapping_samples, tracking_samples
 from training.export import export, mapping_keep, tracker_keep
-from training.model import MappingNet, TrackingNet, VanillaTracker
+from training.model import ContactNet, MappingNet, TrackingNet, VanillaTracker
 
 
 @pytest.fixture(scope="module")
@@ -21,20 +21,26 @@ def clips(salsa_dir):
     return build_clips(salsa_dir, "train", mirror_aug=True)
 
 
-@pytest.mark.parametrize("kind", ["mapping", "tracker", "vanilla"])
+@pytest.mark.parametrize("kind", ["mapping", "contacts", "tracker", "vanilla"])
 def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     torch.manual_seed(0)
     if kind == "mapping":
         x, y = mapping_samples(clips[:2])
         model, n_in, keep, name = MappingNet(F.MAP_IN, F.MAP_OUT, 32), F.MAP_IN, mapping_keep(), "mapping"
+    elif kind == "contacts":
+        x, y = contact_samples(clips[:2])
+        assert y.shape[1] == 8 and set(np.unique(y)) <= {0.0, 1.0}
+        model, n_in, keep, name = ContactNet(F.MAP_IN, 8, 32), F.MAP_IN, slice(None), "contacts"
     else:
         x, y, _ = tracking_samples(clips[:2], "leader")
         cls = TrackingNet if kind == "tracker" else VanillaTracker
         model, n_in, keep, name = cls(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM), F.TRACK_IN, tracker_keep(), "tracker_leader"
     info = T.train_model(model, x[:512], y[:512], epochs=2, batch=64)
-    assert np.isfinite(info["final"]["rec"])
+    assert np.isfinite(info["final"]["bce" if kind == "contacts" else "rec"])
     path = str(tmp_path / f"{name}.onnx")
-    extra = {"default_pose": default_pose(x)} if kind != "mapping" else None
+    extra = {"default_pose": default_pose(x)} if kind in ("tracker", "vanilla") else None
+    if kind == "contacts":
+        extra = {"floor_levels": {r: floor_levels_of(clips[:2], r) for r in ("leader", "follower")}}
     export(model, name, path, n_in, extra, weights="fp32")
     m = onnx.load(path)
     onnx.checker.check_model(m)

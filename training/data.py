@@ -52,6 +52,29 @@ def mapping_samples(clips):
     return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
 
 
+def contact_samples(clips):
+    """The contact network's samples: the mapping input at every frame of the
+    duet clips and both dancers' SPEC §6 contacts there ``(n, 8)`` (leader's four
+    foot points, then the follower's; each clip's own floor levels)."""
+    xs, ys = [], []
+    for c in clips:
+        if c.follower is None:
+            continue
+        xs.append(mapping_inputs(c))
+        ys.append(np.concatenate([c.leader.contacts, c.follower.contacts], axis=1))
+    return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
+
+
+def floor_levels_of(clips, role: str) -> list:
+    """A dancer's floor level per foot point (m): the median over the duet clips of
+    each clip's SPEC §6 floor level (the 5th percentile of the point's height)."""
+    from dancing_points_addon.representation import floor_levels
+    from dancing_points_addon.skeleton import FEET
+
+    levels = [floor_levels(getattr(c, role).positions[:, FEET, 1]) for c in clips if c.follower is not None]
+    return [round(float(v), 5) for v in np.median(levels, axis=0)]
+
+
 def mapping_predictions(clip, mapping_fn):
     """The mapping network's output at every frame τ of a clip, decoded: per
     dancer, world roots ``(n, FUTURE, 4)`` and own-root tracked points of frames

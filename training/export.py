@@ -1,5 +1,8 @@
 """Export trained networks to ONNX with their feature layout as metadata.
 
+The contact network (``contacts.onnx``) is exported whole, its probabilities
+(sigmoid) in the graph.
+
 The exported tracker is the inference path only (estimator -> decoder) and
 computes only the outputs the runtime reads: the first future key (the next
 frame); its last layer is the trained one with the other keys' rows dropped,
@@ -98,7 +101,7 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
     "int8" (quantised weights, int8 compute: what ships) or "fp32" (the exact graph)."""
     if weights not in WEIGHTS:
         raise ValueError(f"weights must be one of {WEIGHTS}")
-    keep = tracker_keep() if kind.startswith("tracker") else mapping_keep()
+    keep = tracker_keep() if kind.startswith("tracker") else mapping_keep() if kind == "mapping" else None
     wrapped = model.cpu().eval().truncated(keep)
     dummy = torch.zeros(1, n_in)
     tmp = path + ".tmp"
@@ -114,7 +117,8 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
         "fps": str(F.FPS),
         "past_frames": str(F.PAST),
         "future_frames": str(F.FUTURE),
-        "output_keys": json.dumps([1] if kind.startswith("tracker") else list(range(1, F.FUTURE + 1))),
+        "output_keys": json.dumps([1] if kind.startswith("tracker") else list(range(1, F.FUTURE + 1))
+                                  if kind == "mapping" else [0]),
         "skeleton": json.dumps(list(JOINT_NAMES)),
         "data_split": "CMU salsa takes 01-13 at 30 Hz, frames [0, floor(0.8*n30)) of each take (SPEC §5); "
                       "mirror augmented",
@@ -135,13 +139,13 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
 def main(argv=None):
     import argparse
 
-    from .model import MappingNet, TrackingNet, VanillaTracker
+    from .model import ContactNet, MappingNet, TrackingNet, VanillaTracker
 
     ap = argparse.ArgumentParser(prog="python -m training.export", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoints", default="cache/checkpoints")
     ap.add_argument("--out", default="models")
-    ap.add_argument("--names", default="mapping,tracker_leader,tracker_follower",
+    ap.add_argument("--names", default="mapping,contacts,tracker_leader,tracker_follower",
                     help="checkpoints to export (e.g. vanilla_leader,pastinput_follower for the ablations)")
     ap.add_argument("--weights", choices=WEIGHTS, default="int8",
                     help="int8: quantised weights, int8 compute (shipped); fp32: the exact float graph")
@@ -160,6 +164,8 @@ def main(argv=None):
         meta = dict(ck["meta"])
         if name == "mapping":
             m, n_in, kind = MappingNet(F.MAP_IN, F.MAP_OUT, meta["hidden"]), F.MAP_IN, "mapping"
+        elif name == "contacts":
+            m, n_in, kind = ContactNet(F.MAP_IN, hidden=meta["hidden"], layers=meta["layers"]), F.MAP_IN, "contacts"
         else:
             role = meta.get("role") or name.rsplit("_", 1)[1]
             cls = VanillaTracker if meta.get("ablation") == "a" else TrackingNet

@@ -3,8 +3,9 @@
     python -m training.train --data ../shared/data/cmu_salsa --out models
 
 Trains, on the SPEC §5 train split only (mirror augmented): the mapping
-network, and one tracking network per dancer (leader, follower), then exports
-them to ONNX. ``--ablations DIR`` also trains ablation (a), a vanilla MLP
+network, the contact network (both dancers' foot contacts from the mapping's
+input; it times the follower's steps) and one tracking network per dancer
+(leader, follower), then exports them to ONNX. ``--ablations DIR`` also trains ablation (a), a vanilla MLP
 tracker, and (b), a tracker fed the past instead of the future three-point
 trajectory, for both dancers, under the same settings, into ``DIR``.
 No validation split is carved from the test frames: training runs a fixed
@@ -24,9 +25,10 @@ import torch
 from dancing_points_addon import features as F
 from training.dataset import load_clips
 
-from .data import default_pose, mapping_samples, rollout_states, time_warp, tracking_samples
+from .data import (contact_samples, default_pose, floor_levels_of, mapping_samples, rollout_states, time_warp,
+                   tracking_samples)
 from .export import export
-from .model import MappingNet, TrackingNet, VanillaTracker
+from .model import ContactNet, MappingNet, TrackingNet, VanillaTracker
 
 
 def save_checkpoint(model, path, meta):
@@ -81,9 +83,11 @@ CONFIGS = {
     # is in models/README.md). The ablations get their dancer's settings.
     "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 60,
              "pose_noise": {"leader": 0.3, "follower": 0.0}, "runtime_keys": False, "rollout_steps": 20,
-             "rollout_epochs": 0},
+             "rollout_epochs": 0,
+             "contacts": {"hidden": 256, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2}},
     "tiny": {"map_hidden": 32, "map_epochs": 1, "track_hidden": 32, "track_epochs": 1,
-             "pose_noise": 0.3, "runtime_keys": True, "rollout_steps": 4, "rollout_epochs": 1},
+             "pose_noise": 0.3, "runtime_keys": True, "rollout_steps": 4, "rollout_epochs": 1,
+             "contacts": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2}},
 }
 
 
@@ -95,7 +99,7 @@ def main(argv=None):
     ap.add_argument("--config", choices=sorted(CONFIGS), default="full")
     ap.add_argument("--ablations", default=None, help="also train ablations (a), (b) into this folder")
     ap.add_argument("--only", default=None,
-                    help="comma list of what to train: mapping, leader, follower (the shipped models)"
+                    help="comma list of what to train: mapping, contacts, leader, follower (the shipped models)"
                          " and, with --ablations, vanilla, pastinput (default: all)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: all cores)")
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto")
@@ -156,7 +160,8 @@ def main(argv=None):
     t_all = time.time()
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
-    only = set(args.only.split(",")) if args.only else {"mapping", "leader", "follower", "vanilla", "pastinput"}
+    only = set(args.only.split(",")) if args.only else {"mapping", "contacts", "leader", "follower", "vanilla",
+                                                        "pastinput"}
     # the recipe options given on the command line (paths and machine settings aside)
     overrides = {k: v for k, v in vars(args).items() if v != ap.get_default(k)
                  and k not in ("data", "out", "cache", "ablations", "only", "threads", "device", "split", "config")}
@@ -184,6 +189,22 @@ def main(argv=None):
                {"hidden": hidden, "train": info, **split_meta}, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": hidden, **split_meta})
         report["models"]["mapping"] = info
+    if "contacts" in only:
+        x, y = contact_samples(clips)
+        log(f"contacts: {x.shape} -> {y.shape}")
+        ccfg = cfg["contacts"]
+        m = ContactNet(F.MAP_IN, y.shape[1], ccfg["hidden"], ccfg["layers"], noise=ccfg["noise"],
+                       dropout=ccfg["dropout"])
+        info = train_model(m, x, y, ccfg["epochs"], device=device, log=log, seed=args.seed)
+        info.update({k: v for k, v in ccfg.items() if k != "epochs"})
+        # each dancer's floor level per foot point (the follower's lock plants her feet there)
+        meta = {"hidden": ccfg["hidden"], "layers": ccfg["layers"], "train": info,
+                "outputs": json.dumps([f"{r} {p}" for r in ("leader", "follower")
+                                       for p in ("ltibia", "lfoot", "rtibia", "rfoot")]),
+                "floor_levels": {r: floor_levels_of(clips, r) for r in ("leader", "follower")}, **split_meta}
+        export(m, "contacts", os.path.join(args.out, "contacts.onnx"), F.MAP_IN, meta, weights=args.weights)
+        save_checkpoint(m, os.path.join(args.cache, "checkpoints", "contacts.pt"), meta)
+        report["models"]["contacts"] = info
     mapping_fn = None
     if cfg["runtime_keys"] and only & {"leader", "follower", "vanilla"}:
         from dancing_points_addon.nets import OnnxNet
@@ -246,7 +267,7 @@ def main(argv=None):
             tracker(TrackingNet, role, f"pastinput_{role}", os.path.join(args.ablations, f"pastinput_{role}.onnx"),
                     past_input=True, extra={"ablation": "b", "input": "past three-point trajectory"})
     report["seconds_total"] = time.time() - t_all  # this run
-    report_dir = args.out if only & {"mapping", "leader", "follower"} else args.ablations
+    report_dir = args.out if only & {"mapping", "contacts", "leader", "follower"} else args.ablations
     path = os.path.join(report_dir, "training_report.json")
     if report["models"]:
         if os.path.exists(path):  # a partial run (--only, --roles) keeps the other models' entries

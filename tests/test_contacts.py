@@ -1,0 +1,57 @@
+"""The contact network (``models/contacts.onnx``, issue 13): both dancers' foot
+contacts at the current frame from the leader's past 0.5 s of three points (the
+mapping network's input). It times the follower's steps (her foot lock plants
+and lifts her feet as it says)."""
+import json
+
+import numpy as np
+import pytest
+
+from dancing_points_addon.nets import load_nets
+
+DATA = "../shared/data/cmu_salsa"
+
+
+@pytest.fixture(scope="module")
+def test_frames():
+    """The mapping input and both dancers' SPEC §6 contacts at every frame of the
+    13 takes' test frames (ground-truth three points, not mirrored)."""
+    from training.data import contact_samples
+    from training.dataset import load_clips
+
+    return contact_samples(load_clips(DATA, "test", mirror_aug=False))
+
+
+def test_contact_network_knows_when_the_feet_are_down(test_frames):
+    """On the test frames, where the network says contact (p > 0.5) the foot is
+    down more often than it is at all: at least 8 points of precision over the
+    true contact rate, for each dancer (a network that only learnt how often a
+    foot is down scores the rate itself), and it finds most of the contacts."""
+    x, y = test_frames
+    p = load_nets()["contacts"](x)
+    assert p.shape == y.shape == (len(x), 8) and np.all((p >= 0) & (p <= 1))
+    for who, cols in (("leader", slice(0, 4)), ("follower", slice(4, 8))):
+        pc, tc = p[:, cols] > 0.5, y[:, cols] > 0.5
+        precision = (pc & tc).sum() / pc.sum()
+        recall = (pc & tc).sum() / tc.sum()
+        print(f"\n{who}: precision {precision:.3f} (true contact rate {tc.mean():.3f}), recall {recall:.3f}")
+        assert precision >= tc.mean() + 0.08
+        assert recall >= 0.6
+
+
+def test_contact_network_carries_each_dancers_floor():
+    """Its metadata holds each dancer's floor level per foot point (the median of
+    the train takes' 5th-percentile heights): the follower's locks go there.
+    Within 2 cm of the test frames' own floor levels, ankles above balls."""
+    from dancing_points_addon.representation import floor_levels
+    from dancing_points_addon.skeleton import FEET
+    from training.dataset import load_clips
+
+    meta = json.loads(load_nets()["contacts"].meta["floor_levels"])
+    clips = load_clips(DATA, "test", mirror_aug=False)
+    for role in ("leader", "follower"):
+        shipped = np.array(meta[role])
+        true = np.median([floor_levels(getattr(c, role).positions[:, FEET, 1]) for c in clips], axis=0)
+        print(f"\n{role} floor levels (cm): shipped {np.round(shipped * 100, 1)}, test frames {np.round(true * 100, 1)}")
+        assert np.abs(shipped - true).max() < 0.02
+        assert shipped[0] > shipped[1] and shipped[2] > shipped[3]
