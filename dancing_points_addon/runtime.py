@@ -205,7 +205,10 @@ class Synthesizer:
     follower's placement state, torso separation and hand holds
     (:class:`~.follower.FollowerOptions`; None: the earlier path, her root
     pulled towards the raw prediction). Both dancers' next tracker step starts
-    from the consistent skeleton pose of this one (pose recovery).
+    from the consistent skeleton pose of this one (pose recovery). The contact
+    network (``nets["contacts"]``, on the mapping's input) times the follower's
+    steps: her foot lock reads its probabilities (``FollowerOptions.lock_contacts``),
+    and they are her output contacts.
     ``record_predictions``: keep each step's mapping prediction
     (:attr:`last_prediction`, :attr:`Duet.predictions`) to show the method; it
     changes no output.
