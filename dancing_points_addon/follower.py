@@ -109,7 +109,7 @@ class FollowerOptions:
     lock_floor: float = 0.01
     land_still: bool = True
     clearance: float = 0.05
-    clear_rate: float = 0.0625
+    clear_rate: float = 0.125
     engage_speed: float = 0.0
 
 

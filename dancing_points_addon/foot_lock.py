@@ -32,7 +32,7 @@ class _Side:
         self.off_f = (0.0, 0.0, 0.0)  # transition offset of the foot vector
         self.k = 1 << 30  # frames since the last transition
         self.rb = None  # leg deltas (femur, tibia, foot) being blended out after a release
-        self.lift = None  # (planted ankle height, step height) of the catch-up step after a release
+        self.lift = None  # (planted ankle height, step height, planted ball height) of the catch-up step
         self.prev = None  # last frame's output (ankle, ball) points
         self.clear = 0.0  # the swing clearance's current lift (m)
         self.need = 0.0  # how far the swing clearance raised the ankle on the last frame (m)
@@ -186,15 +186,16 @@ class FootLocker:
         elif ca > self.on:
             st.on_a = True
         # a drift-released point may lock again once its release blend is over
-        # (a sliding prediction with a steady contact then gets re-planted)
-        if not st.on_a or (st.lock_a is None and st.k >= NS):
+        # (a sliding prediction with a steady contact then gets re-planted): the
+        # catch-up step when the whole side is free, the lock's blend otherwise
+        if not st.on_a or (st.lock_a is None and st.k >= (NS if st.lock_b is None else N)):
             st.armed_a = True
         if st.on_b:
             if cb < self.off:
                 st.on_b = False
         elif cb > self.on:
             st.on_b = True
-        if not st.on_b or (st.lock_b is None and st.k >= NS):
+        if not st.on_b or (st.lock_b is None and st.k >= (NS if st.lock_a is None else N)):
             st.armed_b = True
 
         la, lb = st.lock_a, st.lock_b
@@ -260,15 +261,16 @@ class FootLocker:
             st.lock_a, st.lock_b = new_a, new_b
             if new_a is not None or new_b is not None:
                 st.lift = None
+                st.clear = 0.0  # the next swing's clearance rises from the floor
             st.k = 0
             if new_a is None and new_b is None:
                 # full release: the old mode's IK on this frame (so the output
                 # is continuous), then its deltas blend out in rotation space
-                st.rb = self._solve(rows, T_old, F_old, fwd)[1]
+                pts, st.rb = self._solve(rows, T_old, F_old, fwd)
                 d = sqrt((T_old[0] - a[0]) ** 2 + (T_old[2] - a[2]) ** 2)
                 h = min(max(self.step_scale * d, self.step_height), self.step_max)
-                # (planted ankle height, step height, planted ball height)
-                st.lift = (T_old[1], h, T_old[1] + F_old[1]) if h > 0.0 else None
+                # (planted ankle height, step height, the ball's height on this frame)
+                st.lift = (T_old[1], h, pts[2][1]) if h > 0.0 else None
             else:
                 st.rb = None
                 T, F = self._mode(new_a, new_b, a, fx, fy, fz)

@@ -140,11 +140,15 @@ def check_models(model_dir=None, threads: int = 1) -> str:
         if kind in ("leader", "follower") and "default_pose" not in net.meta:
             raise ModelError(f"{path}: no default_pose in its metadata")
         if kind == "contacts":
+            n_out = net.session.get_outputs()[0].shape[-1]
+            if isinstance(n_out, int) and n_out != 8:
+                raise ModelError(f"{path}: gives {n_out} outputs, the contact network needs 8")
             try:
                 floors = json.loads(net.meta.get("floor_levels", "null"))
-                ok = all(len(floors[r]) == 4 for r in ("leader", "follower"))
+                ok = all(len(floors[r]) == 4 and all(isinstance(v, (int, float)) for v in floors[r])
+                         for r in ("leader", "follower"))
             except (ValueError, TypeError, KeyError):
                 ok = False
             if not ok:
-                raise ModelError(f"{path}: no floor_levels (four per dancer) in its metadata")
+                raise ModelError(f"{path}: no floor_levels (four numbers per dancer) in its metadata")
     return d

@@ -208,7 +208,7 @@ class Synthesizer:
     from the consistent skeleton pose of this one (pose recovery). The contact
     network (``nets["contacts"]``, on the mapping's input) times the follower's
     steps: her foot lock reads its probabilities (``FollowerOptions.lock_contacts``),
-    and they are her output contacts.
+    and they are her output contacts (with foot locking off, her tracker's are).
     ``record_predictions``: keep each step's mapping prediction
     (:attr:`last_prediction`, :attr:`Duet.predictions`) to show the method; it
     changes no output.
@@ -245,10 +245,17 @@ class Synthesizer:
 
     @staticmethod
     def _floor_levels(net):
+        """The contact network's floor levels, ``{"leader": [4], "follower": [4]}``, or
+        None when it has none (or they are malformed)."""
         meta = getattr(net, "meta", {}) or {}
         if net is None or "floor_levels" not in meta:
             return None
-        return {r: [float(v) for v in f] for r, f in json.loads(meta["floor_levels"]).items()}
+        try:
+            levels = json.loads(meta["floor_levels"])
+            out = {r: [float(v) for v in levels[r]] for r in ("leader", "follower")}
+        except (ValueError, TypeError, KeyError):
+            return None
+        return out if all(len(v) == 4 for v in out.values()) else None
 
     @staticmethod
     def _default_pose(net):

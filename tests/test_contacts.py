@@ -9,17 +9,22 @@ import pytest
 
 from dancing_points_addon.nets import load_nets
 
-DATA = "../shared/data/cmu_salsa"
+
+@pytest.fixture(scope="module")
+def test_clips(salsa_dir):
+    """The 13 takes' test frames (ground truth, not mirrored)."""
+    from training.dataset import build_clips
+
+    return build_clips(salsa_dir, "test", mirror_aug=False)
 
 
 @pytest.fixture(scope="module")
-def test_frames():
+def test_frames(test_clips):
     """The mapping input and both dancers' SPEC §6 contacts at every frame of the
-    13 takes' test frames (ground-truth three points, not mirrored)."""
+    test clips."""
     from training.data import contact_samples
-    from training.dataset import load_clips
 
-    return contact_samples(load_clips(DATA, "test", mirror_aug=False))
+    return contact_samples(test_clips)
 
 
 def test_contact_network_knows_when_the_feet_are_down(test_frames):
@@ -39,16 +44,15 @@ def test_contact_network_knows_when_the_feet_are_down(test_frames):
         assert recall >= 0.6
 
 
-def test_contact_network_carries_each_dancers_floor():
+def test_contact_network_carries_each_dancers_floor(test_clips):
     """Its metadata holds each dancer's floor level per foot point (the median of
     the train takes' 5th-percentile heights): the follower's locks go there.
     Within 2 cm of the test frames' own floor levels, ankles above balls."""
     from dancing_points_addon.representation import floor_levels
     from dancing_points_addon.skeleton import FEET
-    from training.dataset import load_clips
 
     meta = json.loads(load_nets()["contacts"].meta["floor_levels"])
-    clips = load_clips(DATA, "test", mirror_aug=False)
+    clips = test_clips
     for role in ("leader", "follower"):
         shipped = np.array(meta[role])
         true = np.median([floor_levels(getattr(c, role).positions[:, FEET, 1]) for c in clips], axis=0)

@@ -451,13 +451,56 @@ def test_foot_locker_step_frames_sets_the_catch_up_steps_length(take):
         assert all(u - t == n for t, u in zip(released, relocked)), (kw, released, relocked)
 
 
+def test_foot_locker_heel_released_alone_relocks_after_the_locks_blend(take):
+    """The heel slides 20 cm while the ball stays (ball prediction still): the
+    ankle lock drifts off and the side stays planted on its ball. The ankle may
+    lock again once the lock's blend is over, whatever the catch-up step's
+    length (a whole-side release waits for the step; this is not one)."""
+    gt, rot, _ = take
+    T = 60
+    P = np.repeat(gt[100:101], T, axis=0)
+    R = np.repeat(rot[100:101], T, axis=0)
+    P[:, J["ltibia"]] += np.linspace(0, 0.2, T)[:, None] * [1.0, 0, 0]
+    C = np.zeros((T, 4))
+    C[:, 0] = C[:, 1] = 0.9
+    for step_frames in (5, 10, 14):
+        locks = _run_locker(FootLocker(blend_frames=10, max_drift=0.05, step_frames=step_frames), P, R, C)[2]
+        assert all(lk[0][1] is not None for lk in locks)  # the ball holds throughout
+        off = next(t for t in range(1, T) if locks[t - 1][0][0] is not None and locks[t][0][0] is None)
+        back = next((t for t in range(off, T) if locks[t][0][0] is not None), None)
+        assert back == off + 10, (step_frames, off, back)
+
+
+def test_foot_locker_step_and_swing_hand_off_without_a_pop(take):
+    """A foot swept forward at 0.9 m/s whose contact comes and goes (15 frames
+    off, 15 on): it swings (lifted by the clearance), plants, steps when the lock
+    drifts or lets go, and swings again. The step lifts from where the foot was
+    planted (its ball too) and the swing after a plant rises from the floor
+    again (its clearance does not carry over from before the plant), so the
+    foot never moves up or down more than 3 cm a frame: the step's own first
+    rise is 6 · sin(π / 7) = 2.6 cm. (Before, the carried-over clearance made it
+    jump 4.9 cm.)"""
+    P, R = _swinging_foot(take, T=60, speed=0.9)
+    ankle, ball = J["ltibia"], J["lfoot"]
+    floor = [P[0, ankle, 1], P[0, ball, 1], P[0, J["rtibia"], 1], P[0, J["rfoot"], 1]]
+    C = np.zeros((60, 4))
+    C[15:30, :2] = C[45:, :2] = 0.9
+    locker = FootLocker(blend_frames=10, step_frames=7, step_height=0.04, step_max=0.06, max_drift=0.3,
+                        floor=floor, clearance=0.05, clear_rate=0.125, lift_ball=True, land_still=True)
+    out, _, locks = _run_locker(locker, P, R, C)
+    assert any(lk[0] == (None, None) for lk in locks[15:30]) or any(lk[0][0] is not None for lk in locks[15:30])
+    jump = np.abs(np.diff(out[:, [ankle, ball], 1], axis=0)).max()
+    print(f"\nlargest vertical move of the ankle or ball in a frame: {jump * 100:.2f} cm")
+    assert jump < 0.03
+
+
 def test_foot_locker_lift_ball_lifts_the_whole_foot(take):
     """A catch-up step whose predicted foot turns toes-down as it leaves (the ball
     4 cm lower than where it was planted): the ankle is lifted either way, but
     only with ``lift_ball`` does the ball leave the floor too (at least
     ``step_height · sin(π k / N)`` over where it was planted, k frames into the
-    step); without it the ball drags along under its planted height (SPEC §6
-    counts that as skating)."""
+    step, within 5 mm); without it the ball drags along under its planted height
+    (SPEC §6 counts that as skating)."""
     P, R, C = _drifting_lock(take)
     ankle, ball = J["ltibia"], J["lfoot"]
     N, h = 7, 0.04
@@ -482,8 +525,10 @@ def test_foot_locker_lift_ball_lifts_the_whole_foot(take):
         worst[lift_ball] = min(gaps)
     print(f"\nball over its planted height + the step's lift, worst frame (cm): with lift_ball "
           f"{worst[True] * 100:.2f}, without {worst[False] * 100:.2f}")
-    assert worst[True] >= -1e-6
-    assert worst[False] < -0.01
+    # (the step lifts from the ball's height on the release frame, which the predicted foot's
+    # new length moves by a few millimetres from the last planted frame's)
+    assert worst[True] >= -0.005
+    assert worst[False] < -0.02
 
 
 def _swinging_foot(take, T=40, speed=0.9):
