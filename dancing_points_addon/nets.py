@@ -19,6 +19,20 @@ MODEL_FILES = {"mapping": "mapping.onnx", "contacts": "contacts.onnx", "leader":
                "follower": "tracker_follower.onnx"}
 
 
+def contact_floor_levels(meta: dict):
+    """The contact network's floor levels from its metadata, ``{"leader": [4 floats],
+    "follower": [4 floats]}`` (metres, training scale), or None when they are
+    missing or malformed."""
+    import json
+
+    try:
+        levels = json.loads(meta["floor_levels"])
+        out = {r: [float(v) for v in levels[r]] for r in ("leader", "follower")}
+    except (ValueError, TypeError, KeyError):
+        return None
+    return out if all(len(v) == 4 for v in out.values()) else None
+
+
 class ModelError(UserError):
     """The networks cannot be loaded (one user-facing line)."""
 
@@ -143,12 +157,6 @@ def check_models(model_dir=None, threads: int = 1) -> str:
             n_out = net.session.get_outputs()[0].shape[-1]
             if isinstance(n_out, int) and n_out != 8:
                 raise ModelError(f"{path}: gives {n_out} outputs, the contact network needs 8")
-            try:
-                floors = json.loads(net.meta.get("floor_levels", "null"))
-                ok = all(len(floors[r]) == 4 and all(isinstance(v, (int, float)) for v in floors[r])
-                         for r in ("leader", "follower"))
-            except (ValueError, TypeError, KeyError):
-                ok = False
-            if not ok:
+            if contact_floor_levels(net.meta) is None:
                 raise ModelError(f"{path}: no floor_levels (four numbers per dancer) in its metadata")
     return d

@@ -20,7 +20,7 @@ import numpy as np
 
 from . import features as F
 from .follower import FollowerOptions, HandHold, Placement, Separation
-from .nets import load_nets
+from .nets import contact_floor_levels, load_nets
 from .pose import PoseRecovery, bone_vectors_from_pose
 from .representation import (DEVICE_FROM_HEAD, blend_root, pose_to_world, root_compose, root_from_head, root_relative,
                              rot_to_local, to_local, to_world)
@@ -236,26 +236,21 @@ class Synthesizer:
                              for r, p in self.default_pose.items()}
         self._recovery = (PoseRecovery(self.bone_vectors["leader"]), PoseRecovery(self.bone_vectors["follower"]))
         # each dancer's floor level per foot point (training scale), from the contact network
-        self.floor_levels = self._floor_levels(nets.get("contacts"))
+        contacts = nets.get("contacts")
+        self.floor_levels = None if contacts is None else contact_floor_levels(getattr(contacts, "meta", {}) or {})
+        # her steps timed by the contact network (``FollowerOptions.lock_contacts``)
+        fo = follower
+        if fo is not None and fo.lock_contacts not in ("net", "tracker"):
+            raise ValueError(f"FollowerOptions.lock_contacts must be 'net' or 'tracker', not {fo.lock_contacts!r}")
+        self._net_steps = bool(self.foot_lock and fo is not None and fo.lock_contacts == "net")
+        if self._net_steps and self.floor_levels is None:
+            raise ValueError("FollowerOptions.lock_contacts='net' needs the contact network (contacts.onnx "
+                             "with floor_levels in its metadata)")
         # the follower's arm lengths (shoulder to wrist), for hand holds
         bl = np.linalg.norm(self.bone_vectors["follower"], axis=-1)
         self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
                                    + bl[JOINT_INDEX[s + "wrist"]] for s in "lr"])
         self.reset()
-
-    @staticmethod
-    def _floor_levels(net):
-        """The contact network's floor levels, ``{"leader": [4], "follower": [4]}``, or
-        None when it has none (or they are malformed)."""
-        meta = getattr(net, "meta", {}) or {}
-        if net is None or "floor_levels" not in meta:
-            return None
-        try:
-            levels = json.loads(meta["floor_levels"])
-            out = {r: [float(v) for v in levels[r]] for r in ("leader", "follower")}
-        except (ValueError, TypeError, KeyError):
-            return None
-        return out if all(len(v) == 4 for v in out.values()) else None
 
     @staticmethod
     def _default_pose(net):
@@ -282,13 +277,6 @@ class Synthesizer:
         self._lockers = None
         self._effector = None
         fo = self.follower_options
-        # her steps timed by the contact network (``FollowerOptions.lock_contacts``)
-        self._net_steps = bool(self.foot_lock and fo is not None and fo.lock_contacts == "net")
-        if self._net_steps and ("contacts" not in self.nets or self.floor_levels is None):
-            raise ValueError("FollowerOptions.lock_contacts='net' needs the contact network (contacts.onnx "
-                             "with floor_levels in its metadata)")
-        if fo is not None and fo.lock_contacts not in ("net", "tracker"):
-            raise ValueError(f"FollowerOptions.lock_contacts must be 'net' or 'tracker', not {fo.lock_contacts!r}")
         self._placement = Placement(fo) if fo is not None else None
         self._separation = Separation(fo.min_distance) if fo is not None else None
         self._hold = HandHold(fo) if fo is not None and fo.hold else None

@@ -372,14 +372,8 @@ def test_foot_locker_drift_release_is_a_step_not_a_slide(take):
     when it drifts past ``max_drift`` and catches up by stepping: every blend
     frame between release and landing is above the SPEC skating height, so the
     foot never moves horizontally while low."""
-    gt, rot, _ = take
-    T = 60
-    P = np.repeat(gt[100:101], T, axis=0)
-    R = np.repeat(rot[100:101], T, axis=0)
-    leg = [J["ltibia"], J["lfoot"], J["ltoes"]]
-    P[:, leg] += np.linspace(0, 0.6, T)[:, None, None] * [1.0, 0, 0]  # slides 60 cm over 2 s
-    C = np.zeros((T, 4))
-    C[:, 0] = C[:, 1] = 0.9  # contact all along
+    P, R, C = _drifting_lock(take)  # slides 60 cm over 2 s, contact all along
+    T = len(P)
     locker = FootLocker()
     out, _, locks = _run_locker(locker, P, R, C)
     ankle, ball = J["ltibia"], J["lfoot"]
@@ -401,14 +395,9 @@ def test_foot_locker_relock_during_a_step_lands_smoothly(take):
     """A contact that comes on in the middle of a catch-up step waits for the
     landing: the step completes (no drop from the lifted height, never below
     where the foot was planted), then the point locks where the foot landed."""
-    gt, rot, _ = take
-    T = 60
-    P = np.repeat(gt[100:101], T, axis=0)
-    R = np.repeat(rot[100:101], T, axis=0)
-    leg = [J["ltibia"], J["lfoot"], J["ltoes"]]
-    P[:, leg] += np.linspace(0, 0.6, T)[:, None, None] * [1.0, 0, 0]
-    C = np.zeros((T, 4))
-    C[:, 0] = 0.9
+    P, R, C = _drifting_lock(take)
+    T = len(P)
+    C[:, 1] = 0.0  # the ankle's contact only
     first = _run_locker(FootLocker(), P, R, C)[2]
     rel = next(t for t in range(1, T) if first[t - 1][0][0] is not None and first[t][0][0] is None)
     C[rel + 3:, 1] = 0.9  # the ball contact comes on three frames into the step
