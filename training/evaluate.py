@@ -149,7 +149,7 @@ def score(runs):
     """runs: list of dicts with pred/true leader/follower positions (T, 31, 3), mask."""
     agg = {k: [] for k in ("track", "lead", "fol", "hand", "head_l", "head_f", "skate", "skate_gt",
                            "jit", "jit_gt", "fskate", "fjit", "skate_own", "fskate_gt", "fjit_gt", "pen",
-                           "pen_gt")}
+                           "pen_gt", "pose_l", "pose_f", "mean_l", "mean_f")}
     counts, fcounts = [], []
     pred_corr, true_corr = [], []
     for r in runs:
@@ -157,6 +157,13 @@ def score(runs):
         agg["track"].append(M.tracking_error(pl, tl, m))
         agg["lead"].append(M.fullbody_error(pl, tl, m))
         agg["fol"].append(M.fullbody_error(pf, tf, m))
+        # issue 13: the pose with placement factored out, beside a mean-pose prior's (the
+        # train pose nearest the mean, carried along)
+        agg["pose_l"].append(M.placed_pose_error(pl, tl, m))
+        agg["pose_f"].append(M.placed_pose_error(pf, tf, m))
+        if r.get("mean_poses") is not None:
+            for key, pose, true in (("mean_l", r["mean_poses"][0], tl), ("mean_f", r["mean_poses"][1], tf)):
+                agg[key].append(M.placed_pose_error(np.broadcast_to(pose, true.shape), true, m))
         agg["hand"].append(M.hand_error(pl, pf, tl, tf, m))
         agg["head_l"].append(M.heading_error(pl, tl, m))
         agg["head_f"].append(M.heading_error(pf, tf, m))
@@ -183,6 +190,10 @@ def score(runs):
         "leader_fullbody_cm": M.aggregate(agg["lead"]) * cm,
         "follower_fullbody_cm": M.aggregate(agg["fol"]) * cm,
         "hand_cm": M.aggregate(agg["hand"]) * cm,
+        "leader_pose_cm": M.aggregate(agg["pose_l"]) * cm,
+        "follower_pose_cm": M.aggregate(agg["pose_f"]) * cm,
+        "leader_mean_pose_cm": M.aggregate(agg["mean_l"]) * cm,
+        "follower_mean_pose_cm": M.aggregate(agg["mean_f"]) * cm,
         "heading_leader_deg": M.aggregate(agg["head_l"]),
         "heading_follower_deg": M.aggregate(agg["head_f"]),
         "heading_corr": float(np.average(pred_corr, weights=w)),
@@ -275,18 +286,22 @@ def run_system(factory, segments, tmpdir, fixed=None):
         take = segment_take(seg, tmpdir)
         if fixed is not None:
             (pl, _), (pf, _) = fixed.run(take)
+            poses = fixed.lead_pose, fixed.fol_pose
         else:
             synth = factory()
             duet = synth.synthesize(take)
             pl, pf = duet.leader_positions, duet.follower_positions
             placement = getattr(synth, "_placement", None)
             leashed += placement.leashed if placement is not None else 0
+            poses = synth.default_pose["leader"], synth.default_pose["follower"]
+        # each dancer's train pose nearest the mean (the networks' default_pose), as a prior to beat
+        mean_poses = tuple(F.pose_positions(np.asarray(p, dtype=np.float64)) for p in poses)
         tl, tf = seg["lead"][0], seg["fol"][0]
         n = min(len(pl), len(tl))
         mask = np.arange(n) / F.FPS >= SCORE_FROM
         runs.append({"pl": pl[:n], "pf": pf[:n], "tl": tl[:n], "tf": tf[:n], "mask": mask,
                      "lead_len": seg["lead_len"], "fol_len": seg["fol_len"],
-                     "input_head": tl[:n, TRACKED[0]]})
+                     "input_head": tl[:n, TRACKED[0]], "mean_poses": mean_poses})
         frames += n
     return runs, {"seconds": time.time() - t0, "frames": frames, "leash_frames": leashed}
 
@@ -389,7 +404,11 @@ def markdown_table(results):
     gt = next(iter(results.values()))
     rows.append("| ground truth | 0 | 0 | 0 | 0 | 0 | 0 | "
                 f"{gt['heading_corr_gt']:.2f} | 1 | {gt['skating_gt_cm_s']:.2f} | {gt['jitter_gt']:.2f} |")
-    return head + "\n".join(rows) + "\n"
+    tail = ("\nPose with placement factored out (each body turned and moved onto the true pelvis and hip "
+            "heading), full model against each dancer's train pose nearest the mean (`default_pose`): leader "
+            f"{gt['leader_pose_cm']:.2f} cm (mean pose {gt['leader_mean_pose_cm']:.2f}), follower "
+            f"{gt['follower_pose_cm']:.2f} cm (mean pose {gt['follower_mean_pose_cm']:.2f}).\n")
+    return head + "\n".join(rows) + "\n" + tail
 
 
 if __name__ == "__main__":

@@ -49,6 +49,27 @@ def hip_heading(pos):
     return np.arctan2(fwd[:, 0], fwd[:, 2])
 
 
+def placed(pred, true):
+    """``pred`` moved onto ``true``'s placement, per frame: turned about the
+    vertical through its pelvis by the hip heading difference, then shifted so
+    that its pelvis's floor projection is the true one (heights kept). What is
+    left of the difference is the pose."""
+    turn = hip_heading(true) - hip_heading(pred)
+    c, s = np.cos(turn), np.sin(turn)
+    pelvis = pred[:, :1] * np.array([1.0, 0.0, 1.0])
+    q = pred - pelvis
+    x, z = q[..., 0], q[..., 2]
+    # a turn by θ about +Y (headings measured from +Z towards +X)
+    out = np.stack([c[:, None] * x + s[:, None] * z, q[..., 1], -s[:, None] * x + c[:, None] * z], axis=-1)
+    return out + true[:, :1] * np.array([1.0, 0.0, 1.0])
+
+
+def placed_pose_error(pred, true, mask):
+    """Full-body error with placement factored out (issue 13): mean joint
+    distance after :func:`placed`."""
+    return fullbody_error(placed(pred, true), true, mask)
+
+
 def heading_error(pred, true, mask):
     d = np.angle(np.exp(1j * (hip_heading(pred) - hip_heading(true))))
     return _masked(np.degrees(np.abs(d)), mask)
