@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import onnx
+from onnx import numpy_helper
 import onnxruntime as ort
 import pytest
 import torch
@@ -12,7 +13,7 @@ from dancing_points_addon import features as F
 from training.dataset import build_clips, split_range
 from training import train as T
 from training.data import contact_samples, default_pose, floor_levels_of, mapping_samples, tracking_samples
-from training.export import export, mapping_keep, tracker_keep
+from training.export import FLOAT_COMPUTE, FLOAT_COMPUTE_WEIGHTS, export, float_compute, mapping_keep, tracker_keep
 from training.model import ContactNet, MappingNet, TrackingNet, VanillaTracker
 
 
@@ -58,20 +59,28 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     print(f"\n{kind}: onnxruntime vs torch max |diff| = {err:.2e}")
     assert err < 1e-4
 
-    # the shipped form: int8 weight-only quantised, same metadata, close to float32
+    # the shipped form: int8 weight-only quantised, same metadata, close to float32;
+    # the mapping's int8 weights multiplied in float32 (its layer inputs not quantised)
     qpath = str(tmp_path / f"{name}_int8.onnx")
     export(model, name, qpath, n_in, extra)
     qm = onnx.load(qpath)
     onnx.checker.check_model(qm)
-    assert {n.op_type for n in qm.graph.node} & {"MatMulNBits"} and "Gemm" not in {n.op_type for n in qm.graph.node}
+    ops = {n.op_type for n in qm.graph.node}
+    assert "Gemm" not in ops
     qmeta = {p.key: p.value for p in qm.metadata_props}
     assert qmeta["weights"].startswith("int8") and qmeta["layout"] == meta["layout"]
-    assert sum(t.raw_data.__len__() for t in qm.graph.initializer) < 0.4 * sum(
-        t.raw_data.__len__() for t in m.graph.initializer)
+    if name in FLOAT_COMPUTE:
+        assert "MatMulNBits" not in ops and qmeta["weights"] == FLOAT_COMPUTE_WEIGHTS
+    else:
+        assert "MatMulNBits" in ops
+        assert sum(t.raw_data.__len__() for t in qm.graph.initializer) < 0.4 * sum(
+            t.raw_data.__len__() for t in m.graph.initializer)
     qgot = ort.InferenceSession(qpath, providers=["CPUExecutionProvider"]).run(None, {"x": xb})[0]
     rel = np.abs(qgot - want).max() / np.abs(want).max()
     print(f"{kind}: int8 vs torch max |diff| / max |y| = {rel:.2e}")
     assert rel < 0.01
+    if kind == "mapping":
+        _check_float_compute(tmp_path, qpath, xb, want, m)
 
 
 def test_tracker_loss_options_route_gradients_as_documented(clips):
@@ -142,3 +151,34 @@ def test_fit_and_val_cut_the_train_frames_only():
         va, vb = split_range(n60, "val")
         assert (fa, fb, vb) == (a, va, b) and fa <= fb <= vb
         assert vb <= split_range(n60, "test")[0]
+
+
+def _check_float_compute(tmp_path, qpath, xb, want, float_model):
+    """The experiment's rewrite (``export --float-compute``): the same int8 weight
+    values, multiplied in float32; its metadata says so; its output as close to
+    the float network's as the int8 compute's."""
+    import shutil
+
+    path = str(tmp_path / "float_compute.onnx")
+    shutil.copy(qpath, path)
+    assert float_compute(path) == path
+    fm = onnx.load(path)
+    onnx.checker.check_model(fm)
+    ops = {n.op_type for n in fm.graph.node}
+    assert "MatMulNBits" not in ops and "MatMul" in ops
+    assert {p.key: p.value for p in fm.metadata_props}["weights"] == FLOAT_COMPUTE_WEIGHTS
+    # the same int8 weight values: in every block of 32 input weights, integer multiples
+    # of the block's scale (its largest magnitude / 128); the float network's are not
+    for W in [numpy_helper.to_array(t) for t in fm.graph.initializer if t.name.endswith("_float")]:
+        blocks = W[:W.shape[0] // 32 * 32].reshape(-1, 32, W.shape[1])
+        steps = blocks / np.maximum(np.abs(blocks).max(1, keepdims=True) / 128.0, 1e-30)
+        assert np.abs(steps - np.round(steps)).max() < 1e-3
+    fb = [numpy_helper.to_array(t) for t in float_model.graph.initializer if t.name.endswith("weight")][0][:, :32]
+    fsteps = fb / (np.abs(fb).max(1, keepdims=True) / 128.0)
+    assert np.abs(fsteps - np.round(fsteps)).max() > 0.1
+    got = ort.InferenceSession(path, providers=["CPUExecutionProvider"]).run(None, {"x": xb})[0]
+    rel = np.abs(got - want).max() / np.abs(want).max()
+    print(f"mapping, int8 weights multiplied in float32 vs torch: {rel:.2e}")
+    assert rel < 0.01
+    with pytest.raises(ValueError, match="not an int8 network"):
+        float_compute(str(tmp_path / "mapping.onnx"))  # the float export

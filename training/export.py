@@ -12,6 +12,16 @@ whole future second.
 Re-export from the training checkpoints (no retraining):
 
     python -m training.export --checkpoints cache/checkpoints --out models
+
+Weights are int8 (symmetric, blocks of 32 input weights), run by
+onnxruntime's ``MatMulNBits``, which also quantises each layer's input. For an
+experiment (issue 13: is the input quantisation what amplifies a millimetre of
+tracker noise?), an int8 file can be rewritten in place with the same weight
+values multiplied in float32, without its checkpoint; ``FLOAT_COMPUTE`` names
+the kinds exported that way (none ship so, see models/README.md). On a copy:
+
+    mkdir -p cache/fc && cp models/*.onnx cache/fc/
+    python -m training.export --float-compute cache/fc/mapping.onnx
 """
 from __future__ import annotations
 
@@ -30,6 +40,12 @@ from dancing_points_addon.skeleton import JOINT_NAMES
 OPSET = 17
 WEIGHTS = ("int8", "fp32")
 INT8_BLOCK = 32
+# kinds whose int8 weights are multiplied in float32 (their layer inputs not quantised);
+# measured for the mapping on val and test and not taken (models/README.md)
+FLOAT_COMPUTE: tuple = ()
+INT8_WEIGHTS = f"int8, symmetric, blocks of {INT8_BLOCK} (MatMulNBits, accuracy level 4: int8 compute)"
+FLOAT_COMPUTE_WEIGHTS = (f"int8 values, symmetric, blocks of {INT8_BLOCK}, stored and multiplied as float32 "
+                         "(the layer inputs are not quantised)")
 
 
 def tracker_keep() -> np.ndarray:
@@ -95,6 +111,64 @@ def quantize_int8(m: onnx.ModelProto) -> onnx.ModelProto:
     return q.model.model
 
 
+def dequantize_int8(m: onnx.ModelProto) -> onnx.ModelProto:
+    """Every 8-bit ``MatMulNBits`` as a float32 ``MatMul`` of its dequantized
+    weights: the same weight values, but the layer input is no longer
+    quantised at run time (onnxruntime 1.22 has no float-compute path for 8-bit
+    blocks). Symmetric blocks only (no zero-point input: 128 is the zero)."""
+    from onnx import helper, numpy_helper
+
+    inits = {i.name: i for i in m.graph.initializer}
+    nodes = []
+    for n in m.graph.node:
+        if n.op_type != "MatMulNBits":
+            nodes.append(n)
+            continue
+        a = {x.name: helper.get_attribute_value(x) for x in n.attribute}
+        if a["bits"] != 8 or (len(n.input) > 3 and n.input[3]):
+            raise ValueError(f"{n.name}: only symmetric 8-bit blocks are dequantized")
+        k, cols = a["K"], a["N"]
+        q = numpy_helper.to_array(inits[n.input[1]]).astype(np.float32)  # (N, blocks, block bytes)
+        scale = numpy_helper.to_array(inits[n.input[2]]).astype(np.float32).reshape(cols, -1)
+        w = ((q - 128.0) * scale[:, :, None]).reshape(cols, -1)[:, :k].T  # (K, N), input-major
+        name = n.input[1] + "_float"
+        m.graph.initializer.append(numpy_helper.from_array(np.ascontiguousarray(w), name))
+        if len(n.input) > 5 and n.input[5]:  # a bias input
+            mid = n.output[0] + "_mm"
+            nodes.append(helper.make_node("MatMul", [n.input[0], name], [mid], name=n.name + "_float"))
+            nodes.append(helper.make_node("Add", [mid, n.input[5]], [n.output[0]], name=n.name + "_bias"))
+        else:
+            nodes.append(helper.make_node("MatMul", [n.input[0], name], [n.output[0]], name=n.name + "_float"))
+    del m.graph.node[:]
+    m.graph.node.extend(nodes)
+    used = {i for n in m.graph.node for i in n.input}
+    keep = [i for i in m.graph.initializer if i.name in used]
+    del m.graph.initializer[:]
+    m.graph.initializer.extend(keep)
+    return m
+
+
+def float_compute(path: str) -> str:
+    """Rewrite the int8 ONNX file ``path`` in place (atomically) with its weights
+    multiplied in float32 (:func:`dequantize_int8`), its metadata kept but for
+    ``weights``."""
+    m = onnx.load(path)
+    meta = {p.key: p.value for p in m.metadata_props}
+    if meta.get("weights") == FLOAT_COMPUTE_WEIGHTS:
+        return path
+    if not meta.get("weights", "").startswith("int8"):
+        raise ValueError(f"{path}: not an int8 network (weights: {meta.get('weights')!r})")
+    m = dequantize_int8(m)
+    onnx.checker.check_model(m)
+    for p in m.metadata_props:
+        if p.key == "weights":
+            p.value = FLOAT_COMPUTE_WEIGHTS
+    tmp = path + ".tmp"
+    onnx.save(m, tmp)
+    os.replace(tmp, path)
+    return path
+
+
 def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None = None,
            weights: str = "int8"):
     """Write ``model`` (eval mode, CPU) as ONNX at ``path`` atomically; ``weights``:
@@ -111,6 +185,8 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
     m = onnx.load(tmp)
     if weights == "int8":
         m = quantize_int8(m)
+        if kind in FLOAT_COMPUTE:
+            m = dequantize_int8(m)
     meta = {
         "kind": kind,
         "layout": json.dumps(F.layout()),
@@ -123,8 +199,8 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
         "data_split": "CMU salsa takes 01-13 at 30 Hz, frames [0, floor(0.8*n30)) of each take (SPEC §5); "
                       "mirror augmented",
         "git_commit": git_commit(),
-        "weights": "float32" if weights == "fp32" else
-                   f"int8, symmetric, blocks of {INT8_BLOCK} (MatMulNBits, accuracy level 4: int8 compute)",
+        "weights": "float32" if weights == "fp32" else FLOAT_COMPUTE_WEIGHTS if kind in FLOAT_COMPUTE else
+                   INT8_WEIGHTS,
     }
     meta.update({k: (v if isinstance(v, str) else json.dumps(v)) for k, v in (extra or {}).items()})
     del m.metadata_props[:]
@@ -149,9 +225,16 @@ def main(argv=None):
                     help="checkpoints to export (e.g. vanilla_leader,pastinput_follower for the ablations)")
     ap.add_argument("--weights", choices=WEIGHTS, default="int8",
                     help="int8: quantised weights, int8 compute (shipped); fp32: the exact float graph")
+    ap.add_argument("--float-compute", nargs="+", default=None, metavar="FILE",
+                    help="an experiment: rewrite these int8 ONNX files in place with their weights "
+                         "multiplied in float32 (no checkpoint needed), then stop")
     ap.add_argument("--default-pose-from", default=None, metavar="DATA",
                     help="recompute the trackers' start-up pose from this data's unmirrored train split")
     args = ap.parse_args(argv)
+    if args.float_compute:
+        for path in args.float_compute:
+            print("float compute:", float_compute(path))
+        return 0
     os.makedirs(args.out, exist_ok=True)
     report = {}
     rp = os.path.join(args.out, "training_report.json")
