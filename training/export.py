@@ -64,26 +64,19 @@ def git_commit() -> str:
         return "unknown"
 
 
-def gemm_to_matmul(m: onnx.ModelProto) -> onnx.ModelProto:
-    """Rewrite every ``Gemm`` (alpha = beta = 1, transA = 0) as ``MatMul`` + ``Add``
-    with the weight stored input-major: the form the MatMulNBits quantiser reads."""
-    from onnx import helper, numpy_helper
+def _rewrite(m: onnx.ModelProto, op_type: str, rewrite) -> onnx.ModelProto:
+    """Replace every ``op_type`` node of ``m`` by the nodes ``rewrite(node,
+    attributes, initializers)`` returns (it may add initializers); drop the
+    initializers no node reads any more."""
+    from onnx import helper
 
     inits = {i.name: i for i in m.graph.initializer}
     nodes = []
     for n in m.graph.node:
-        if n.op_type != "Gemm":
+        if n.op_type != op_type:
             nodes.append(n)
             continue
-        a = {x.name: helper.get_attribute_value(x) for x in n.attribute}
-        if a.get("alpha", 1.0) != 1.0 or a.get("beta", 1.0) != 1.0 or a.get("transA", 0):
-            raise ValueError(f"unsupported Gemm {n.name}")
-        w = numpy_helper.to_array(inits[n.input[1]])
-        w = w.T if a.get("transB", 0) else w
-        m.graph.initializer.append(numpy_helper.from_array(np.ascontiguousarray(w), n.input[1] + "_in_out"))
-        mid = n.output[0] + "_mm"
-        nodes.append(helper.make_node("MatMul", [n.input[0], n.input[1] + "_in_out"], [mid], name=n.name + "_mm"))
-        nodes.append(helper.make_node("Add", [mid, n.input[2]], [n.output[0]], name=n.name + "_bias"))
+        nodes.extend(rewrite(n, {x.name: helper.get_attribute_value(x) for x in n.attribute}, inits))
     del m.graph.node[:]
     m.graph.node.extend(nodes)
     used = {i for n in m.graph.node for i in n.input}
@@ -91,6 +84,24 @@ def gemm_to_matmul(m: onnx.ModelProto) -> onnx.ModelProto:
     del m.graph.initializer[:]
     m.graph.initializer.extend(keep)
     return m
+
+
+def gemm_to_matmul(m: onnx.ModelProto) -> onnx.ModelProto:
+    """Rewrite every ``Gemm`` (alpha = beta = 1, transA = 0) as ``MatMul`` + ``Add``
+    with the weight stored input-major: the form the MatMulNBits quantiser reads."""
+    from onnx import helper, numpy_helper
+
+    def rewrite(n, a, inits):
+        if a.get("alpha", 1.0) != 1.0 or a.get("beta", 1.0) != 1.0 or a.get("transA", 0):
+            raise ValueError(f"unsupported Gemm {n.name}")
+        w = numpy_helper.to_array(inits[n.input[1]])
+        w = w.T if a.get("transB", 0) else w
+        m.graph.initializer.append(numpy_helper.from_array(np.ascontiguousarray(w), n.input[1] + "_in_out"))
+        mid = n.output[0] + "_mm"
+        return [helper.make_node("MatMul", [n.input[0], n.input[1] + "_in_out"], [mid], name=n.name + "_mm"),
+                helper.make_node("Add", [mid, n.input[2]], [n.output[0]], name=n.name + "_bias")]
+
+    return _rewrite(m, "Gemm", rewrite)
 
 
 def quantize_int8(m: onnx.ModelProto) -> onnx.ModelProto:
@@ -118,13 +129,7 @@ def dequantize_int8(m: onnx.ModelProto) -> onnx.ModelProto:
     blocks). Symmetric blocks only (no zero-point input: 128 is the zero)."""
     from onnx import helper, numpy_helper
 
-    inits = {i.name: i for i in m.graph.initializer}
-    nodes = []
-    for n in m.graph.node:
-        if n.op_type != "MatMulNBits":
-            nodes.append(n)
-            continue
-        a = {x.name: helper.get_attribute_value(x) for x in n.attribute}
+    def rewrite(n, a, inits):
         if a["bits"] != 8 or (len(n.input) > 3 and n.input[3]):
             raise ValueError(f"{n.name}: only symmetric 8-bit blocks are dequantized")
         k, cols = a["K"], a["N"]
@@ -135,17 +140,11 @@ def dequantize_int8(m: onnx.ModelProto) -> onnx.ModelProto:
         m.graph.initializer.append(numpy_helper.from_array(np.ascontiguousarray(w), name))
         if len(n.input) > 5 and n.input[5]:  # a bias input
             mid = n.output[0] + "_mm"
-            nodes.append(helper.make_node("MatMul", [n.input[0], name], [mid], name=n.name + "_float"))
-            nodes.append(helper.make_node("Add", [mid, n.input[5]], [n.output[0]], name=n.name + "_bias"))
-        else:
-            nodes.append(helper.make_node("MatMul", [n.input[0], name], [n.output[0]], name=n.name + "_float"))
-    del m.graph.node[:]
-    m.graph.node.extend(nodes)
-    used = {i for n in m.graph.node for i in n.input}
-    keep = [i for i in m.graph.initializer if i.name in used]
-    del m.graph.initializer[:]
-    m.graph.initializer.extend(keep)
-    return m
+            return [helper.make_node("MatMul", [n.input[0], name], [mid], name=n.name + "_float"),
+                    helper.make_node("Add", [mid, n.input[5]], [n.output[0]], name=n.name + "_bias")]
+        return [helper.make_node("MatMul", [n.input[0], name], [n.output[0]], name=n.name + "_float")]
+
+    return _rewrite(m, "MatMulNBits", rewrite)
 
 
 def float_compute(path: str) -> str:
