@@ -67,6 +67,10 @@ class Duet:
     # (T, 2 dancers, FUTURE frames t+1…, 3 tracked points, 3) world positions at the output scale,
     # float32; None when not recorded. Not part of the SPEC §4 output (:meth:`arrays`).
     predictions: np.ndarray | None = None
+    # Each dancer's foot points held by the foot lock at each frame (T, 2 dancers, 4 points in
+    # ``contacts`` order), bool; None without foot locking. What the method view's discs show.
+    # Not part of the SPEC §4 output (:meth:`arrays`).
+    planted: np.ndarray | None = None
 
     @property
     def n_frames(self):
@@ -443,6 +447,14 @@ class Synthesizer:
             lp, fp = lp * (1.0 / s), fp * (1.0 / s)
         return DuetFrame(lp, lr, lc), DuetFrame(fp, fr, fc)
 
+    def planted(self) -> list | None:
+        """Which foot points the foot lock held on the last frame, per dancer
+        (leader, follower), in ``contacts`` order (left ankle, left ball, right
+        ankle, right ball); None without foot locking."""
+        if self._lockers is None:
+            return None
+        return [[lock is not None for side in locker.locks for lock in side] for locker in self._lockers]
+
     def _recover(self, who, pos, rot, contacts, targets):
         """Of dancer ``who`` (0 leader, 1 follower), after pose recovery (Appendix
         B: a consistent skeleton pose): foot locking, then head/wrist IK (the
@@ -537,17 +549,20 @@ class Synthesizer:
         valid = tk.valid
         record = self.record_predictions
         preds = np.empty((T, 2, F.FUTURE, 3, 3), dtype=np.float32) if record else None
+        planted = np.zeros((T, 2, 4), dtype=bool) if self._lockers is not None else None
         for t in range(T):
             a, b = self.step(tk.positions[t], tk.quats[t], valid[t])
             if record:
                 preds[t] = self.last_prediction
+            if planted is not None:
+                planted[t] = self.planted()
             out["lp"][t], out["lr"][t], out["lc"][t] = a.positions, a.rotations, a.contacts
             out["fp"][t], out["fr"][t], out["fc"][t] = b.positions, b.rotations, b.contacts
             if progress is not None and (t % 30 == 0 or t == T - 1):
                 if progress(t + 1, T) is False:
                     raise KeyboardInterrupt("cancelled")
         return Duet(tk.time, out["lp"], out["lr"], out["lc"], out["fp"], out["fr"], out["fc"],
-                    bone_vectors=self.output_bone_vectors(), predictions=preds)
+                    bone_vectors=self.output_bone_vectors(), predictions=preds, planted=planted)
 
 
 def save_npz(duet: Duet, path) -> None:

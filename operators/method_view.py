@@ -18,7 +18,9 @@ in the scene beside a baked duet.
   points per dancer) 2 mm above the floor (the scene's "DP Stage" floor when
   there is one, else the lowest foot point of both dancers over the take);
   the same handler moves each disc under its foot
-  and gives it its radius while the foot is in contact (contact ≥ 0.5), zero
+  and gives it its radius while the foot lock holds that point (the
+  synthesis's lock states, ``Duet.planted``; a duet without them, e.g.
+  synthesised without foot locking: contact probability ≥ 0.5), zero
   otherwise. One object, fixed topology: any length of take.
 
 The source body of a take imported from BVH/FBX/AMC with "Keep Source Body"
@@ -93,7 +95,8 @@ def floor_height(duet):
 def contact_array(duet, floor=None):
     """Per frame the eight discs (leader's four foot points, then the follower's):
     float32 ``(T, 8, 4)``: centre (Blender space, 2 mm above ``floor``, default
-    :func:`floor_height`), 1 in contact else 0."""
+    :func:`floor_height`), 1 where the foot lock holds the point (``duet.planted``;
+    without it, where the contact probability is at least 0.5) else 0."""
     floor = (floor_height(duet) if floor is None else float(floor)) + FLOOR_LIFT
     T = duet.n_frames
     out = np.empty((T, N_DISCS, 4), dtype=np.float32)
@@ -101,7 +104,9 @@ def contact_array(duet, floor=None):
         feet = np.array(getattr(duet, role + "_positions")[:, FEET], dtype=np.float64)
         feet[..., 1] = floor
         out[:, 4 * d:4 * d + 4, :3] = bm.to_blender(feet)
-        out[:, 4 * d:4 * d + 4, 3] = np.asarray(getattr(duet, role + "_contacts")) >= 0.5
+        planted = getattr(duet, "planted", None)
+        out[:, 4 * d:4 * d + 4, 3] = (planted[:, d] if planted is not None
+                                      else np.asarray(getattr(duet, role + "_contacts")) >= 0.5)
     return out
 
 
@@ -260,7 +265,7 @@ class DP_MethodSettings(bpy.types.PropertyGroup):
                                    description="The mapping network's predicted next second of both "
                                                "dancers' head and wrists at the current frame")
     show_contacts: BoolProperty(name="Foot Contacts", default=True, update=_on_setting,
-                                description="Marks on the floor under the feet in contact")
+                                description="Marks on the floor under the foot points the foot lock holds")
     show_ghost: BoolProperty(name="Source Body", default=True, update=_on_setting,
                              description="The full-body source of a take imported from BVH, FBX or AMC "
                                          "(when kept at import), as a translucent ghost")

@@ -83,6 +83,32 @@ def test_recording_changes_no_output(sample, height):
     assert np.median(d) > 0.2
 
 
+def test_planted_states_are_what_the_locks_hold(sample, core_duet):
+    """The discs' source (``Duet.planted``): the foot points the foot lock holds.
+    A held point stays put (its lock blends in over a few frames); a free one
+    moves; they differ from the contact probabilities at 0.5 (her lock switches
+    on at 0.4, his reads kinematic evidence too); none without foot locking."""
+    from dancing_points_addon.skeleton import FEET
+
+    planted = core_duet.planted
+    assert planted.dtype == bool and planted.shape == (core_duet.n_frames, 2, 4)
+    for d, role in enumerate(("leader", "follower")):
+        held = planted[:, d]
+        assert 0.2 < held.mean() < 0.9, (role, held.mean())
+        pos = getattr(core_duet, f"{role}_positions")[:, FEET]
+        step = np.linalg.norm((pos[1:] - pos[:-1])[..., [0, 2]], axis=-1)  # horizontal, per frame
+        both = held[1:] & held[:-1]
+        print(f"\n{role}: held {held.mean():.2f} of foot-frames; held point moves median "
+              f"{np.median(step[both]) * 1000:.2f} mm, p95 {np.percentile(step[both], 95) * 1000:.1f} mm; "
+              f"free points median {np.median(step[~both]) * 1000:.1f} mm")
+        assert np.median(step[both]) < 0.5e-3 and np.percentile(step[both], 95) < 1 * CM
+        assert np.median(step[~both]) > 1 * CM
+        probs = getattr(core_duet, f"{role}_contacts") >= 0.5
+        assert (held != probs).mean() > 0.1  # the view shows the locks, not the probabilities
+    free = Synthesizer(SynthesisOptions(models=MODELS, foot_lock=False)).synthesize(sample)
+    assert free.planted is None
+
+
 # --------------------------------------------------------------------------- Blender
 
 def _mv():
@@ -188,7 +214,7 @@ def test_contact_marks_only_on_contact(scene_duet, core_duet):
     me = obj.data
     assert len(me.polygons) == 8
     from dancing_points_addon import blender_math as bm
-    contact = np.concatenate([core_duet.leader_contacts, core_duet.follower_contacts], axis=1) >= 0.5  # (T, 8)
+    contact = core_duet.planted.reshape(len(core_duet.planted), 8)  # (T, 8): the points the locks hold
     feet = np.concatenate([core_duet.leader_positions[:, FEET], core_duet.follower_positions[:, FEET]], axis=1)
     floor = _mv().stage_floor(scene)  # on the stage's floor when there is one, else on the lowest foot
     if floor is None:
