@@ -100,11 +100,11 @@ def contact_array(duet, floor=None):
     floor = (floor_height(duet) if floor is None else float(floor)) + FLOOR_LIFT
     T = duet.n_frames
     out = np.empty((T, N_DISCS, 4), dtype=np.float32)
+    planted = duet.planted
     for d, role in enumerate(("leader", "follower")):
         feet = np.array(getattr(duet, role + "_positions")[:, FEET], dtype=np.float64)
         feet[..., 1] = floor
         out[:, 4 * d:4 * d + 4, :3] = bm.to_blender(feet)
-        planted = getattr(duet, "planted", None)
         out[:, 4 * d:4 * d + 4, 3] = (planted[:, d] if planted is not None
                                       else np.asarray(getattr(duet, role + "_contacts")) >= 0.5)
     return out

@@ -17,8 +17,8 @@ Weights are int8 (symmetric, blocks of 32 input weights), run by
 onnxruntime's ``MatMulNBits``, which also quantises each layer's input. For an
 experiment (issue 13: is the input quantisation what amplifies a millimetre of
 tracker noise?), an int8 file can be rewritten in place with the same weight
-values multiplied in float32, without its checkpoint; ``FLOAT_COMPUTE`` names
-the kinds exported that way (none ship so, see models/README.md). On a copy:
+values multiplied in float32, without its checkpoint (measured for the
+mapping and not taken, see models/README.md). On a copy:
 
     mkdir -p cache/fc && cp models/*.onnx cache/fc/
     python -m training.export --float-compute cache/fc/mapping.onnx
@@ -40,9 +40,6 @@ from dancing_points_addon.skeleton import JOINT_NAMES
 OPSET = 17
 WEIGHTS = ("int8", "fp32")
 INT8_BLOCK = 32
-# kinds whose int8 weights are multiplied in float32 (their layer inputs not quantised);
-# measured for the mapping on val and test and not taken (models/README.md)
-FLOAT_COMPUTE: tuple = ()
 INT8_WEIGHTS = f"int8, symmetric, blocks of {INT8_BLOCK} (MatMulNBits, accuracy level 4: int8 compute)"
 FLOAT_COMPUTE_WEIGHTS = (f"int8 values, symmetric, blocks of {INT8_BLOCK}, stored and multiplied as float32 "
                          "(the layer inputs are not quantised)")
@@ -184,8 +181,6 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
     m = onnx.load(tmp)
     if weights == "int8":
         m = quantize_int8(m)
-        if kind in FLOAT_COMPUTE:
-            m = dequantize_int8(m)
     meta = {
         "kind": kind,
         "layout": json.dumps(F.layout()),
@@ -198,8 +193,7 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
         "data_split": "CMU salsa takes 01-13 at 30 Hz, frames [0, floor(0.8*n30)) of each take (SPEC §5); "
                       "mirror augmented",
         "git_commit": git_commit(),
-        "weights": "float32" if weights == "fp32" else FLOAT_COMPUTE_WEIGHTS if kind in FLOAT_COMPUTE else
-                   INT8_WEIGHTS,
+        "weights": "float32" if weights == "fp32" else INT8_WEIGHTS,
     }
     meta.update({k: (v if isinstance(v, str) else json.dumps(v)) for k, v in (extra or {}).items()})
     del m.metadata_props[:]

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dancing_points_addon.representation import CONTACT_HEIGHT, CONTACT_SPEED, floor_levels, foot_speeds, segments_gap
+from dancing_points_addon.representation import (CONTACT_HEIGHT, CONTACT_SPEED, floor_levels, foot_speeds,
+                                                  segments_gap, to_local, to_world)
 from dancing_points_addon.skeleton import FEET, HIPS, JOINT_INDEX, TRACKED, WRISTS
 
 SKATE_HEIGHT = 0.025
@@ -54,14 +55,11 @@ def placed(pred, true):
     vertical through its pelvis by the hip heading difference, then shifted so
     that its pelvis's floor projection is the true one (heights kept). What is
     left of the difference is the pose."""
-    turn = hip_heading(true) - hip_heading(pred)
-    c, s = np.cos(turn), np.sin(turn)
-    pelvis = pred[:, :1] * np.array([1.0, 0.0, 1.0])
-    q = pred - pelvis
-    x, z = q[..., 0], q[..., 2]
-    # a turn by θ about +Y (headings measured from +Z towards +X)
-    out = np.stack([c[:, None] * x + s[:, None] * z, q[..., 1], -s[:, None] * x + c[:, None] * z], axis=-1)
-    return out + true[:, :1] * np.array([1.0, 0.0, 1.0])
+    def pelvis_root(pos):  # (x, z, cos, sin) of the pelvis and the hip heading (from +Z towards +X)
+        h = hip_heading(pos)
+        return np.stack([pos[:, 0, 0], pos[:, 0, 2], np.cos(h), np.sin(h)], axis=-1)
+
+    return to_world(to_local(pred, pelvis_root(pred)), pelvis_root(true))
 
 
 def placed_pose_error(pred, true, mask):

@@ -211,8 +211,12 @@ def main(argv=None):
         _, c = hip_net(torch.from_numpy(Xv))
     pos = torch.softmax(a, 1).numpy() @ cen
     err = np.linalg.norm(pos - cen[cv], axis=1).mean() * 100  # against the true cell's centre
-    ang = lambda p, t: np.degrees(np.abs(np.angle(np.exp(1j * (np.arctan2(*(p @ dirs).T[::-1]) - np.arctan2(
-        dirs[t, 1], dirs[t, 0])))))).mean()
+
+    def ang(probs, true_bins):  # mean |circular mean of the bins − the true bin's centre|, degrees
+        mean = probs @ dirs
+        d = np.arctan2(mean[:, 1], mean[:, 0]) - np.arctan2(dirs[true_bins, 1], dirs[true_bins, 0])
+        return np.degrees(np.abs(np.angle(np.exp(1j * d)))).mean()
+
     print(f"val, open loop: position {err:.1f} cm, root heading {ang(torch.softmax(b, 1).numpy(), hv):.1f} deg, "
           f"hip heading {ang(torch.softmax(c, 1).numpy(), pv):.1f} deg (against the true bins' centres)")
 
