@@ -87,8 +87,9 @@ def onnx_weights(path):
 
 
 class _Floor:
-    """The bare mat-vec products of all four networks' weights (the mapping and
-    the contact network once, each tracker once), timed one duet frame at a time."""
+    """The bare mat-vec products of all five networks' weights (the mapping, the
+    contact network and the pose anchor once, each tracker once), timed one duet
+    frame at a time."""
 
     def __init__(self, model_dir):
         self.chain = [np.ascontiguousarray(w) for f in MODEL_FILES.values()

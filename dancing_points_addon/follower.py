@@ -68,6 +68,13 @@ class FollowerOptions:
     max_offset: float = 2.0  # m, the farthest target from the leader's root
     max_gap: float = 0.8  # m, the farthest she may lag behind her target (a leash)
     min_distance: float = 0.2  # m, torso axes (0: no separation)
+    # Her lower body (hip joints and legs) is pulled this share of the way a frame to the pose
+    # anchor's (``nets["anchor"]``: her lower body from the leader's past 0.5 s, in her hip frame),
+    # before her foot lock; her tracker's state is fed back from there. 0.3 halves her change
+    # under 1 mm of tracker noise, but her arms then meet hand-hold targets at her shoulder that
+    # the arm IK turns through by up to 130° in a frame, and her hips' skin stretches: off by
+    # default (models/README.md, "Her legs, anchored"; 0: off)
+    anchor: float = 0.0
     hold: bool = True  # hand holds by arm IK
     hold_on: float = 0.6  # m, predicted wrist distance under which a hold is full
     hold_off: float = 1.0  # m, over which there is none

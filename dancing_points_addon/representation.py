@@ -11,7 +11,7 @@ from math import sqrt
 
 import numpy as np
 
-from .skeleton import FEET, HEAD_BONE, TRACKED
+from .skeleton import FEET, HEAD_BONE, HIPS, TRACKED
 
 # The head device: local −Z forward, +Y up (SPEC §3). Rigid on the `head` bone
 # as ``R_device = R_head · Ry(180°)``.
@@ -83,6 +83,21 @@ def root_from_head(head_pos: np.ndarray, device_rot: np.ndarray) -> np.ndarray:
 def root_from_motion(positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
     """Roots ``(T, 4)`` of a SPEC motion from its head point and head bone."""
     return root_from_head(positions[..., TRACKED[0], :], device_rotation(rotations[..., HEAD_BONE, :, :]))
+
+
+def hip_heading(pos: np.ndarray) -> np.ndarray:
+    """Hip heading angles ``(T,)`` (radians about +Y from +Z) of poses ``(T, 31, 3)``:
+    forward = (left hip − right hip) × up."""
+    across = pos[:, HIPS[0]] - pos[:, HIPS[1]]
+    return np.arctan2(-across[:, 2], across[:, 0])
+
+
+def hip_frame(pos: np.ndarray) -> np.ndarray:
+    """Frames ``(T, 4)`` of poses ``(T, 31, 3)``: the pelvis's floor point and the
+    hip heading. A pose in its own hip frame is its shape with the placement
+    factored out (the follower's pose anchor and the pose metric use it)."""
+    h = hip_heading(pos)
+    return np.stack([pos[:, 0, 0], pos[:, 0, 2], np.cos(h), np.sin(h)], axis=-1)
 
 
 def root_rotation(root: np.ndarray) -> np.ndarray:

@@ -22,10 +22,10 @@ from . import features as F
 from .follower import FollowerOptions, HandHold, Placement, Separation
 from .nets import contact_floor_levels, load_nets
 from .pose import PoseRecovery, bone_vectors_from_pose
-from .representation import (DEVICE_FROM_HEAD, blend_root, pose_to_world, root_compose, root_from_head, root_relative,
-                             rot_to_local, to_local, to_world)
+from .representation import (DEVICE_FROM_HEAD, blend_root, hip_frame, pose_to_world, root_compose, root_from_head,
+                             root_relative, rot_to_local, to_local, to_world)
 from .rotations import quat_to_matrix_one
-from .skeleton import FEET, HEAD_BONE, JOINT_INDEX, JOINT_NAMES, TRACKED
+from .skeleton import FEET, HEAD_BONE, JOINT_INDEX, JOINT_NAMES, LOWER_BODY, TRACKED
 
 # Head height (end of `upperneck`, metres) of the training leader standing, and
 # the standing height it corresponds to: calibration uses their ratio.
@@ -250,6 +250,12 @@ class Synthesizer:
         if self._net_steps and self.floor_levels is None:
             raise ValueError("FollowerOptions.lock_contacts='net' needs the contact network (contacts.onnx "
                              "with floor_levels in its metadata)")
+        # her lower body pulled towards the pose anchor's (``FollowerOptions.anchor``)
+        self._anchor = float(fo.anchor) if fo is not None else 0.0
+        if not 0.0 <= self._anchor <= 1.0:
+            raise ValueError(f"FollowerOptions.anchor must be within 0..1, not {fo.anchor!r}")
+        if self._anchor > 0.0 and nets.get("anchor") is None:
+            raise ValueError("FollowerOptions.anchor needs the pose anchor network (pose_anchor.onnx)")
         # the follower's arm lengths (shoulder to wrist), for hand holds
         bl = np.linalg.norm(self.bone_vectors["follower"], axis=-1)
         self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
@@ -429,6 +435,10 @@ class Synthesizer:
         pos, rot, (lc, fc) = advance_together(
             (self.leader, self.follower), np.array([lk_roots, fk_roots]), np.array([lk_tr, fk_tr]),
             (root, fol_root), (None, fol_pull), RECENTRE_POSE)
+        if self._anchor > 0.0:  # her lower body pulled towards the pose anchor's
+            legs = self.nets["anchor"](x)[0].astype(np.float64).reshape(-1, 3)
+            fp = pos[1]
+            fp[LOWER_BODY] += self._anchor * (to_world(legs, hip_frame(fp[None])[0]) - fp[LOWER_BODY])
         if self._separation is not None:
             dx, dz = self._separation.push(pos[0], pos[1])
             if dx or dz:  # her body and her root state move together

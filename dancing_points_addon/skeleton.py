@@ -43,6 +43,8 @@ FOOT_NAMES = ("ltibia", "lfoot", "rtibia", "rfoot")
 FEET = np.array([JOINT_INDEX[n] for n in FOOT_NAMES])
 HIPS = (JOINT_INDEX["lhipjoint"], JOINT_INDEX["rhipjoint"])
 WRISTS = (JOINT_INDEX["lwrist"], JOINT_INDEX["rwrist"])
+# The lower body: hip joints, thighs, shins, feet, toes (the follower's pose anchor).
+LOWER_BODY = np.arange(JOINT_INDEX["lhipjoint"], JOINT_INDEX["rtoes"] + 1)
 
 # Left/right mirror: index permutation of the 31 joints.
 _UNSIDED = ("root", "lowerback", "lowerneck")

@@ -10,11 +10,13 @@ import pytest
 import torch
 
 from dancing_points_addon import features as F
+from dancing_points_addon.skeleton import LOWER_BODY
 from training.dataset import build_clips, split_range
 from training import train as T
-from training.data import contact_samples, default_pose, floor_levels_of, mapping_samples, tracking_samples
+from training.data import (anchor_samples, contact_samples, default_pose, floor_levels_of, mapping_samples,
+                           tracking_samples)
 from training.export import FLOAT_COMPUTE_WEIGHTS, export, float_compute, mapping_keep, tracker_keep
-from training.model import ContactNet, MappingNet, TrackingNet, VanillaTracker
+from training.model import ContactNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +24,7 @@ def clips(salsa_dir):
     return build_clips(salsa_dir, "train", mirror_aug=True)
 
 
-@pytest.mark.parametrize("kind", ["mapping", "contacts", "tracker", "vanilla"])
+@pytest.mark.parametrize("kind", ["mapping", "contacts", "anchor", "tracker", "vanilla"])
 def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     torch.manual_seed(0)
     if kind == "mapping":
@@ -32,6 +34,10 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
         x, y = contact_samples(clips[:2])
         assert y.shape[1] == 8 and set(np.unique(y)) <= {0.0, 1.0}
         model, n_in, keep, name = ContactNet(F.MAP_IN, 8, 32), F.MAP_IN, slice(None), "contacts"
+    elif kind == "anchor":
+        x, y = anchor_samples(clips[:2])
+        assert y.shape[1] == 3 * len(LOWER_BODY) and np.abs(y[:, :3:2]).max() < 0.2  # hip joints beside the pelvis
+        model, n_in, keep, name = PoseAnchorNet(F.MAP_IN, y.shape[1], 32), F.MAP_IN, slice(None), "pose_anchor"
     else:
         x, y, _ = tracking_samples(clips[:2], "leader")
         cls = TrackingNet if kind == "tracker" else VanillaTracker

@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from dancing_points_addon import features as F
-from dancing_points_addon.representation import rot_to_local, to_local
-from dancing_points_addon.skeleton import TRACKED
+from dancing_points_addon.representation import hip_frame, rot_to_local, to_local
+from dancing_points_addon.skeleton import LOWER_BODY, TRACKED
 
 
 def _tracked(d):
@@ -62,6 +62,20 @@ def contact_samples(clips):
             continue
         xs.append(mapping_inputs(c))
         ys.append(np.concatenate([c.leader.contacts, c.follower.contacts], axis=1))
+    return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
+
+
+def anchor_samples(clips):
+    """The pose anchor's samples: the mapping input at every frame of the duet
+    clips and the follower's lower body there, in her own hip frame (pelvis
+    floor point, hip heading), ``(n, 3 × len(LOWER_BODY))``."""
+    xs, ys = [], []
+    for c in clips:
+        if c.follower is None:
+            continue
+        pos = c.follower.positions
+        xs.append(mapping_inputs(c))
+        ys.append(to_local(pos, hip_frame(pos))[:, LOWER_BODY].reshape(len(pos), -1))
     return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
 
 

@@ -1,7 +1,7 @@
 """Export trained networks to ONNX with their feature layout as metadata.
 
 The contact network (``contacts.onnx``) is exported whole, its probabilities
-(sigmoid) in the graph.
+(sigmoid) in the graph; so is the pose anchor (``pose_anchor.onnx``).
 
 The exported tracker is the inference path only (estimator -> decoder) and
 computes only the outputs the runtime reads: the first future key (the next
@@ -208,13 +208,13 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
 def main(argv=None):
     import argparse
 
-    from .model import ContactNet, MappingNet, TrackingNet, VanillaTracker
+    from .model import ContactNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
     ap = argparse.ArgumentParser(prog="python -m training.export", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoints", default="cache/checkpoints")
     ap.add_argument("--out", default="models")
-    ap.add_argument("--names", default="mapping,contacts,tracker_leader,tracker_follower",
+    ap.add_argument("--names", default="mapping,contacts,pose_anchor,tracker_leader,tracker_follower",
                     help="checkpoints to export (e.g. vanilla_leader,pastinput_follower for the ablations)")
     ap.add_argument("--weights", choices=WEIGHTS, default="int8",
                     help="int8: quantised weights, int8 compute (shipped); fp32: the exact float graph")
@@ -242,6 +242,8 @@ def main(argv=None):
             m, n_in, kind = MappingNet(F.MAP_IN, F.MAP_OUT, meta["hidden"]), F.MAP_IN, "mapping"
         elif name == "contacts":
             m, n_in, kind = ContactNet(F.MAP_IN, hidden=meta["hidden"], layers=meta["layers"]), F.MAP_IN, "contacts"
+        elif name == "pose_anchor":
+            m, n_in, kind = PoseAnchorNet(F.MAP_IN, hidden=meta["hidden"], layers=meta["layers"]), F.MAP_IN, "anchor"
         else:
             role = meta.get("role") or name.rsplit("_", 1)[1]
             cls = VanillaTracker if meta.get("ablation") == "a" else TrackingNet

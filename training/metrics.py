@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 from dancing_points_addon.representation import (CONTACT_HEIGHT, CONTACT_SPEED, floor_levels, foot_speeds,
-                                                  segments_gap, to_local, to_world)
-from dancing_points_addon.skeleton import FEET, HIPS, JOINT_INDEX, TRACKED, WRISTS
+                                                  hip_frame, hip_heading, segments_gap, to_local, to_world)
+from dancing_points_addon.skeleton import FEET, JOINT_INDEX, TRACKED, WRISTS
 
 SKATE_HEIGHT = 0.025
 
@@ -43,23 +43,12 @@ def hand_error(pred_lead, pred_follow, true_lead, true_follow, mask, near=0.15):
     return _masked(np.abs(pd[rows, pair] - td[rows, pair]), sel)
 
 
-def hip_heading(pos):
-    """Hip heading angle (radians, about +Y from +Z) from forward = (lhip − rhip) × up."""
-    across = pos[:, HIPS[0]] - pos[:, HIPS[1]]
-    fwd = np.cross(across, np.array([0.0, 1.0, 0.0]))
-    return np.arctan2(fwd[:, 0], fwd[:, 2])
-
-
 def placed(pred, true):
     """``pred`` moved onto ``true``'s placement, per frame: turned about the
     vertical through its pelvis by the hip heading difference, then shifted so
     that its pelvis's floor projection is the true one (heights kept). What is
     left of the difference is the pose."""
-    def pelvis_root(pos):  # (x, z, cos, sin) of the pelvis and the hip heading (from +Z towards +X)
-        h = hip_heading(pos)
-        return np.stack([pos[:, 0, 0], pos[:, 0, 2], np.cos(h), np.sin(h)], axis=-1)
-
-    return to_world(to_local(pred, pelvis_root(pred)), pelvis_root(true))
+    return to_world(to_local(pred, hip_frame(pred)), hip_frame(true))
 
 
 def placed_pose_error(pred, true, mask):

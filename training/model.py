@@ -167,6 +167,21 @@ class MappingNet(_Net):
         self.net[-1] = lin
 
 
+class PoseAnchorNet(MappingNet):
+    """The follower's pose anchor (issue 13): the mapping network's input (the
+    leader's past 0.5 s of three points) -> her lower body at the current frame
+    in her own hip frame (``representation.hip_frame``), ``(B, 30)``. An MLP
+    trained on the squared error. It knows nothing of her previous frames: the
+    runtime pulls her tracker's closed-loop legs a share of the way to it each
+    frame (``FollowerOptions.anchor``; models/README.md, "Her legs, anchored")."""
+
+    def __init__(self, n_in, n_out=30, hidden=512, layers=3, noise=0.05, dropout=0.2):
+        super().__init__(n_in, n_out, hidden, layers, noise, dropout)
+
+    def truncated(self, keep=None) -> "PoseAnchorNet":
+        return self  # every output is used
+
+
 class ContactNet(nn.Module):
     """Foot contacts of both dancers (issue 13): the mapping network's input (the
     leader's past 0.5 s of three points) -> the contact probability of the SPEC §2

@@ -25,10 +25,10 @@ import torch
 from dancing_points_addon import features as F
 from training.dataset import load_clips
 
-from .data import (contact_samples, default_pose, floor_levels_of, mapping_samples, rollout_states, time_warp,
+from .data import (anchor_samples, contact_samples, default_pose, floor_levels_of, mapping_samples, rollout_states, time_warp,
                    tracking_samples)
 from .export import export
-from .model import ContactNet, MappingNet, TrackingNet, VanillaTracker
+from .model import ContactNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
 
 def save_checkpoint(model, path, meta):
@@ -84,10 +84,12 @@ CONFIGS = {
     "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 60,
              "pose_noise": {"leader": 0.3, "follower": 0.0}, "runtime_keys": False, "rollout_steps": 20,
              "rollout_epochs": 0,
-             "contacts": {"hidden": 256, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2}},
+             "contacts": {"hidden": 256, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2},
+             "anchor": {"hidden": 512, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2}},
     "tiny": {"map_hidden": 32, "map_epochs": 1, "track_hidden": 32, "track_epochs": 1,
              "pose_noise": 0.3, "runtime_keys": True, "rollout_steps": 4, "rollout_epochs": 1,
-             "contacts": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2}},
+             "contacts": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2},
+             "anchor": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2}},
 }
 
 
@@ -99,7 +101,7 @@ def main(argv=None):
     ap.add_argument("--config", choices=sorted(CONFIGS), default="full")
     ap.add_argument("--ablations", default=None, help="also train ablations (a), (b) into this folder")
     ap.add_argument("--only", default=None,
-                    help="comma list of what to train: mapping, contacts, leader, follower (the shipped models)"
+                    help="comma list of what to train: mapping, contacts, anchor, leader, follower (the shipped models)"
                          " and, with --ablations, vanilla, pastinput (default: all)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: all cores)")
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto")
@@ -160,7 +162,7 @@ def main(argv=None):
     t_all = time.time()
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
-    only = set(args.only.split(",")) if args.only else {"mapping", "contacts", "leader", "follower", "vanilla",
+    only = set(args.only.split(",")) if args.only else {"mapping", "contacts", "anchor", "leader", "follower", "vanilla",
                                                         "pastinput"}
     # the recipe options given on the command line (paths and machine settings aside)
     overrides = {k: v for k, v in vars(args).items() if v != ap.get_default(k)
@@ -205,6 +207,20 @@ def main(argv=None):
         export(m, "contacts", os.path.join(args.out, "contacts.onnx"), F.MAP_IN, meta, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", "contacts.pt"), meta)
         report["models"]["contacts"] = info
+    if "anchor" in only:
+        x, y = anchor_samples(clips)
+        log(f"anchor: {x.shape} -> {y.shape}")
+        acfg = cfg["anchor"]
+        m = PoseAnchorNet(F.MAP_IN, y.shape[1], acfg["hidden"], acfg["layers"], noise=acfg["noise"],
+                          dropout=acfg["dropout"])
+        info = train_model(m, x, y, acfg["epochs"], device=device, log=log, seed=args.seed)
+        info.update({k: v for k, v in acfg.items() if k != "epochs"})
+        meta = {"hidden": acfg["hidden"], "layers": acfg["layers"], "train": info,
+                "outputs": "the follower's lower body (skeleton.LOWER_BODY, x y z each) in her hip frame",
+                **split_meta}
+        export(m, "anchor", os.path.join(args.out, "pose_anchor.onnx"), F.MAP_IN, meta, weights=args.weights)
+        save_checkpoint(m, os.path.join(args.cache, "checkpoints", "pose_anchor.pt"), meta)
+        report["models"]["anchor"] = info
     mapping_fn = None
     if cfg["runtime_keys"] and only & {"leader", "follower", "vanilla"}:
         from dancing_points_addon.nets import OnnxNet
@@ -267,7 +283,7 @@ def main(argv=None):
             tracker(TrackingNet, role, f"pastinput_{role}", os.path.join(args.ablations, f"pastinput_{role}.onnx"),
                     past_input=True, extra={"ablation": "b", "input": "past three-point trajectory"})
     report["seconds_total"] = time.time() - t_all  # this run
-    report_dir = args.out if only & {"mapping", "contacts", "leader", "follower"} else args.ablations
+    report_dir = args.out if only & {"mapping", "contacts", "anchor", "leader", "follower"} else args.ablations
     path = os.path.join(report_dir, "training_report.json")
     if report["models"]:
         if os.path.exists(path):  # a partial run (--only, --roles) keeps the other models' entries
