@@ -191,36 +191,29 @@ def main(argv=None):
                {"hidden": hidden, "train": info, **split_meta}, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": hidden, **split_meta})
         report["models"]["mapping"] = info
+    def input_net(key, cls, samples, kind, name, extra):
+        """A small network on the mapping's input (the contact network, the pose
+        anchor): trained, exported as ``name``.onnx, checkpointed, reported."""
+        x, y = samples(clips)
+        log(f"{key}: {x.shape} -> {y.shape}")
+        c = cfg[key]
+        m = cls(F.MAP_IN, y.shape[1], c["hidden"], c["layers"], noise=c["noise"], dropout=c["dropout"])
+        info = train_model(m, x, y, c["epochs"], device=device, log=log, seed=args.seed)
+        info.update({k: v for k, v in c.items() if k != "epochs"})
+        meta = {"hidden": c["hidden"], "layers": c["layers"], "train": info, **extra, **split_meta}
+        export(m, kind, os.path.join(args.out, f"{name}.onnx"), F.MAP_IN, meta, weights=args.weights)
+        save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), meta)
+        report["models"][key] = info
+
     if "contacts" in only:
-        x, y = contact_samples(clips)
-        log(f"contacts: {x.shape} -> {y.shape}")
-        ccfg = cfg["contacts"]
-        m = ContactNet(F.MAP_IN, y.shape[1], ccfg["hidden"], ccfg["layers"], noise=ccfg["noise"],
-                       dropout=ccfg["dropout"])
-        info = train_model(m, x, y, ccfg["epochs"], device=device, log=log, seed=args.seed)
-        info.update({k: v for k, v in ccfg.items() if k != "epochs"})
         # each dancer's floor level per foot point (the follower's lock plants her feet there)
-        meta = {"hidden": ccfg["hidden"], "layers": ccfg["layers"], "train": info,
-                "outputs": json.dumps([f"{r} {p}" for r in ("leader", "follower")
-                                       for p in ("ltibia", "lfoot", "rtibia", "rfoot")]),
-                "floor_levels": {r: floor_levels_of(clips, r) for r in ("leader", "follower")}, **split_meta}
-        export(m, "contacts", os.path.join(args.out, "contacts.onnx"), F.MAP_IN, meta, weights=args.weights)
-        save_checkpoint(m, os.path.join(args.cache, "checkpoints", "contacts.pt"), meta)
-        report["models"]["contacts"] = info
+        input_net("contacts", ContactNet, contact_samples, "contacts", "contacts",
+                  {"outputs": json.dumps([f"{r} {p}" for r in ("leader", "follower")
+                                          for p in ("ltibia", "lfoot", "rtibia", "rfoot")]),
+                   "floor_levels": {r: floor_levels_of(clips, r) for r in ("leader", "follower")}})
     if "anchor" in only:
-        x, y = anchor_samples(clips)
-        log(f"anchor: {x.shape} -> {y.shape}")
-        acfg = cfg["anchor"]
-        m = PoseAnchorNet(F.MAP_IN, y.shape[1], acfg["hidden"], acfg["layers"], noise=acfg["noise"],
-                          dropout=acfg["dropout"])
-        info = train_model(m, x, y, acfg["epochs"], device=device, log=log, seed=args.seed)
-        info.update({k: v for k, v in acfg.items() if k != "epochs"})
-        meta = {"hidden": acfg["hidden"], "layers": acfg["layers"], "train": info,
-                "outputs": "the follower's lower body (skeleton.LOWER_BODY, x y z each) in her hip frame",
-                **split_meta}
-        export(m, "anchor", os.path.join(args.out, "pose_anchor.onnx"), F.MAP_IN, meta, weights=args.weights)
-        save_checkpoint(m, os.path.join(args.cache, "checkpoints", "pose_anchor.pt"), meta)
-        report["models"]["anchor"] = info
+        input_net("anchor", PoseAnchorNet, anchor_samples, "anchor", "pose_anchor",
+                  {"outputs": "the follower's lower body (skeleton.LOWER_BODY, x y z each) in her hip frame"})
     mapping_fn = None
     if cfg["runtime_keys"] and only & {"leader", "follower", "vanilla"}:
         from dancing_points_addon.nets import OnnxNet
