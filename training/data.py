@@ -52,31 +52,34 @@ def mapping_samples(clips):
     return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
 
 
-def contact_samples(clips):
-    """The contact network's samples: the mapping input at every frame of the
-    duet clips and both dancers' SPEC §6 contacts there ``(n, 8)`` (leader's four
-    foot points, then the follower's; each clip's own floor levels)."""
+def _duet_frames(clips, target):
+    """The mapping input at every frame of the duet clips, with ``target(clip)``
+    ``(n, k)`` beside it (the networks on the mapping's input)."""
     xs, ys = [], []
     for c in clips:
         if c.follower is None:
             continue
         xs.append(mapping_inputs(c))
-        ys.append(np.concatenate([c.leader.contacts, c.follower.contacts], axis=1))
+        ys.append(target(c))
     return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
+
+
+def contact_samples(clips):
+    """The contact network's samples: the mapping input at every frame of the
+    duet clips and both dancers' SPEC §6 contacts there ``(n, 8)`` (leader's four
+    foot points, then the follower's; each clip's own floor levels)."""
+    return _duet_frames(clips, lambda c: np.concatenate([c.leader.contacts, c.follower.contacts], axis=1))
 
 
 def anchor_samples(clips):
     """The pose anchor's samples: the mapping input at every frame of the duet
     clips and the follower's lower body there, in her own hip frame (pelvis
     floor point, hip heading), ``(n, 3 × len(LOWER_BODY))``."""
-    xs, ys = [], []
-    for c in clips:
-        if c.follower is None:
-            continue
+    def lower_body(c):
         pos = c.follower.positions
-        xs.append(mapping_inputs(c))
-        ys.append(to_local(pos, hip_frame(pos))[:, LOWER_BODY].reshape(len(pos), -1))
-    return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
+        return to_local(pos, hip_frame(pos))[:, LOWER_BODY].reshape(len(pos), -1)
+
+    return _duet_frames(clips, lower_body)
 
 
 def floor_levels_of(clips, role: str) -> list:

@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from dancing_points_addon import features as F
+from dancing_points_addon.skeleton import LOWER_BODY
 
 
 def mlp(n_in: int, n_out: int, hidden: int, layers: int = 6, dropout: float = 0.1) -> nn.Sequential:
@@ -175,7 +176,7 @@ class PoseAnchorNet(MappingNet):
     runtime pulls her tracker's closed-loop legs a share of the way to it each
     frame (``FollowerOptions.anchor``; models/README.md, "Her legs, anchored")."""
 
-    def __init__(self, n_in, n_out=30, hidden=512, layers=3, noise=0.05, dropout=0.2):
+    def __init__(self, n_in, n_out=3 * len(LOWER_BODY), hidden=512, layers=3, noise=0.05, dropout=0.2):
         super().__init__(n_in, n_out, hidden, layers, noise, dropout)
 
     def truncated(self, keep=None) -> "PoseAnchorNet":

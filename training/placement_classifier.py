@@ -25,7 +25,6 @@ mapping's.
 """
 from __future__ import annotations
 
-import argparse
 import time
 from math import hypot
 
@@ -42,7 +41,7 @@ from . import evaluate as E
 from .data import mapping_inputs
 from .dataset import SALSA_TAKES, load_clips
 from .metrics import hip_heading
-from .placement_net import score
+from .placement_net import experiment_parser, score
 
 CELL, REACH, BINS = 0.12, 2.4, 36
 
@@ -189,11 +188,7 @@ class ClassifierSynth(Synthesizer):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(prog="python -m training.placement_classifier", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default="../shared/data/cmu_salsa")
-    ap.add_argument("--models", default=".gpu/fit_c", help="networks trained on the fit cut")
-    ap.add_argument("--cache", default="cache")
+    ap = experiment_parser("python -m training.placement_classifier", __doc__, ".gpu/fit_c")
     ap.add_argument("--epochs", type=int, default=30)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)

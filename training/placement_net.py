@@ -136,12 +136,17 @@ def score(factory, segments):
     return E.score(runs)
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(prog="python -m training.placement_net", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def experiment_parser(prog, doc, models):
+    """The command line of a placement experiment: data, fit-trained networks, cache."""
+    ap = argparse.ArgumentParser(prog=prog, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="../shared/data/cmu_salsa")
-    ap.add_argument("--models", default=".gpu/fit_models", help="networks trained on the fit cut")
+    ap.add_argument("--models", default=models, help="networks trained on the fit cut")
     ap.add_argument("--cache", default="cache")
+    return ap
+
+
+def main(argv=None):
+    ap = experiment_parser("python -m training.placement_net", __doc__, ".gpu/fit_models")
     ap.add_argument("--noise", type=float, default=0.15)
     ap.add_argument("--ema", type=float, default=0.9)
     ap.add_argument("--epochs", type=int, default=15)

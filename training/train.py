@@ -25,8 +25,8 @@ import torch
 from dancing_points_addon import features as F
 from training.dataset import load_clips
 
-from .data import (anchor_samples, contact_samples, default_pose, floor_levels_of, mapping_samples, rollout_states, time_warp,
-                   tracking_samples)
+from .data import (anchor_samples, contact_samples, default_pose, floor_levels_of, mapping_samples, rollout_states,
+                   time_warp, tracking_samples)
 from .export import export
 from .model import ContactNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
@@ -162,8 +162,8 @@ def main(argv=None):
     t_all = time.time()
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
-    only = set(args.only.split(",")) if args.only else {"mapping", "contacts", "anchor", "leader", "follower", "vanilla",
-                                                        "pastinput"}
+    only = set(args.only.split(",")) if args.only else {"mapping", "contacts", "anchor", "leader", "follower",
+                                                        "vanilla", "pastinput"}
     # the recipe options given on the command line (paths and machine settings aside)
     overrides = {k: v for k, v in vars(args).items() if v != ap.get_default(k)
                  and k not in ("data", "out", "cache", "ablations", "only", "threads", "device", "split", "config")}
@@ -191,6 +191,7 @@ def main(argv=None):
                {"hidden": hidden, "train": info, **split_meta}, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": hidden, **split_meta})
         report["models"]["mapping"] = info
+
     def input_net(key, cls, samples, kind, name, extra):
         """A small network on the mapping's input (the contact network, the pose
         anchor): trained, exported as ``name``.onnx, checkpointed, reported."""
