@@ -70,21 +70,25 @@ class FollowerOptions:
     min_distance: float = 0.2  # m, torso axes (0: no separation)
     # Her lower body (hip joints and legs) is pulled this share of the way a frame to the pose
     # anchor's (``nets["anchor"]``: her lower body from the leader's past 0.5 s, in her hip frame),
-    # before her foot lock; her tracker's state is fed back from there. 0.3 halves her change
-    # under 1 mm of tracker noise, but her arms then meet hand-hold targets at her shoulder that
-    # the arm IK turns through by up to 130° in a frame, and her hips' skin stretches: off by
-    # default (models/README.md, "Her legs, anchored"; 0: off)
-    anchor: float = 0.0
+    # before her foot lock; her tracker's state is fed back from there, each leg bone's twist kept
+    # within the skeleton's (``pose.LegJoints``), and her output's hip joints turn with her pelvis.
+    # 0.3 (chosen on val) halves her change under 1 mm of tracker noise and plants her feet more
+    # (models/README.md, "Her legs, anchored"; 0: off)
+    anchor: float = 0.3
+    # degrees a frame: her upper arms and forearms turn at most this much relative to her chest
+    # (``ik.ArmTurnLimit``; the fastest real arm in the salsa train frames: 30). A hand hold whose
+    # target passes her shoulder otherwise flips her arm (130° in a frame, with the anchor; 0: free)
+    arm_turn: float = 30.0
     hold: bool = True  # hand holds by arm IK
-    hold_on: float = 0.6  # m, predicted wrist distance under which a hold is full
+    hold_on: float = 0.7  # m, predicted wrist distance under which a hold is full
     hold_off: float = 1.0  # m, over which there is none
-    hold_gap: float = 0.11  # m, wrist-to-wrist distance of a hold (wrist joints: the hands between them)
+    hold_gap: float = 0.09  # m, wrist-to-wrist distance of a hold (wrist joints: the hands between them)
     hold_frames: int = 6  # blend in/out
     hold_smooth: float = 0.7  # exponential smoothing of the hold's pull on her wrist
     hold_switch: float = 0.05  # m: a held hand changes partner when his other hand is this much closer
     # (< 0: never while held; the hold ends when its partner is over hold_off away)
     hold_ramp: bool = True  # the hold's weight a ramp of the distance (hold_on..hold_off), not a switch
-    hold_soft: float = 0.05  # m: his two hands weighted by a softmax of distance / hold_soft (0: one partner)
+    hold_soft: float = 0.03  # m: his two hands weighted by a softmax of distance / hold_soft (0: one partner)
     hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (0: exponential smoothing)
     hold_soft_rate: float = 0.05  # the soft partner's weights change by at most this much a frame (0: free)
     hold_arm_ik: str = "swing"  # her arm IK under a hold (``ik.EndEffectorIK``'s ``arm``): "swing" or "pole"

@@ -14,6 +14,9 @@ independently. This module turns them into what a user sees:
   the leader's hands in a hold. Its arms swing about the shoulder and bend as
   a hinge (``arm="swing"``), so a forearm does not spin about itself when a
   target pulls the wrist across.
+* :class:`ArmTurnLimit` (stateful) lets an arm bone turn at most so far a
+  frame relative to the chest: where a hold's target passes the shoulder, the
+  arm swings over in a few frames instead of flipping in one.
 
 Every IK step edits positions and rotations *consistently*: when a bone's
 direction changes by a rotation ``D``, its global rotation becomes ``D · R``.
@@ -35,7 +38,7 @@ from .skeleton import JOINT_INDEX, PARENTS
 
 __all__ = [
     "rotation_between", "two_bone_ik", "bone_transforms", "transforms_to_matrices", "EndEffectorIK", "smoothstep",
-    "I3", "rot_between_s", "two_bone_s", "mat_vec", "mat_mul", "smooth01", "rot_scale",
+    "I3", "rot_between_s", "two_bone_s", "mat_vec", "mat_mul", "smooth01", "rot_scale", "ArmTurnLimit",
 ]
 
 _J = JOINT_INDEX
@@ -577,3 +580,85 @@ class EndEffectorIK:
         pts[rigid[1]] = nwr  # exact (the rigid move puts it there up to rounding)
         pts[hum] = nel
         self._compose(delta, hum, R1)
+
+
+def _tr(A):
+    return (A[0], A[3], A[6], A[1], A[4], A[7], A[2], A[5], A[8])
+
+
+def _angle(D):
+    """The angle (rad) of the rotation ``D`` (9-tuple)."""
+    c = 0.5 * (D[0] + D[4] + D[8] - 1.0)
+    s = 0.5 * sqrt((D[7] - D[5]) ** 2 + (D[2] - D[6]) ** 2 + (D[3] - D[1]) ** 2)
+    return atan2(s, c)
+
+
+class ArmTurnLimit:
+    """Each arm's upper arm and forearm turn by at most ``max_turn`` degrees a
+    frame relative to the thorax (stateful, per dancer; call :meth:`reset` at a
+    take's start).
+
+    A hand hold's target passing close to the shoulder swings the shoulder→
+    target line through large angles in a frame, and any stateless two-bone
+    solution then jumps between the arm's two ways of folding (a 130° forearm
+    turn in one frame). This limit is the arm's speed, not a clamp on where it
+    goes: a bone that would turn farther turns ``max_turn`` towards the new
+    pose along the shortest rotation, and reaches it a few frames later (the
+    hold's wrist lags its target meanwhile). The default, 30°, is the fastest
+    relative turn of any arm bone in the salsa train frames (both dancers: 99.99th
+    percentile 23–27°, the largest 30–43°), so real-speed arm motion passes
+    untouched. ``engaged`` counts the frames on which it acted."""
+
+    def __init__(self, max_turn: float = 30.0):
+        self.max = radians(float(max_turn))
+        self._th = _J["thorax"]
+        self._arms = [(_J[s + "clavicle"], _J[s + "humerus"],
+                       (_J[s + "radius"], _J[s + "wrist"], _J[s + "hand"], _J[s + "fingers"], _J[s + "thumb"]))
+                      for s in "lr"]
+        self.reset()
+
+    def reset(self):
+        self._prev = [None, None]
+        self.engaged = 0
+
+    def step(self, positions, rotations):
+        """``positions (31, 3)``, ``rotations (31, 3, 3)`` (world); returns them,
+        edited in place where a bone turned too fast."""
+        C = tuple(rotations[self._th].ravel().tolist())
+        Ct = _tr(C)
+        lim = self.max
+        acted = False
+        for side, (clav, hum, rigid) in enumerate(self._arms):
+            Rh = tuple(rotations[hum].ravel().tolist())
+            Rf = tuple(rotations[rigid[0]].ravel().tolist())
+            rh, rf = mat_mul(Ct, Rh), mat_mul(Ct, Rf)
+            prev = self._prev[side]
+            if prev is not None:
+                ph, pf = prev
+                th = _angle(mat_mul(rh, _tr(ph)))
+                if th > lim:  # the upper arm (and the forearm with it) turns lim towards its new pose
+                    rh2 = mat_mul(rot_scale(mat_mul(rh, _tr(ph)), lim / th), ph)
+                    E = mat_mul(C, mat_mul(rh2, mat_mul(_tr(rh), Ct)))
+                    self._turn(positions, rotations, (hum,) + rigid, E, positions[clav].tolist(),
+                               positions[clav].tolist())
+                    rh, rf = rh2, mat_mul(Ct, mat_mul(E, Rf))
+                    acted = True
+                th = _angle(mat_mul(rf, _tr(pf)))
+                if th > lim:  # the forearm turns lim towards its new pose about the elbow
+                    rf2 = mat_mul(rot_scale(mat_mul(rf, _tr(pf)), lim / th), pf)
+                    E = mat_mul(C, mat_mul(rf2, mat_mul(_tr(rf), Ct)))
+                    el = positions[hum].tolist()
+                    self._turn(positions, rotations, rigid, E, el, el)
+                    rf = rf2
+                    acted = True
+            self._prev[side] = (rh, rf)
+        self.engaged += acted
+        return positions, rotations
+
+    @staticmethod
+    def _turn(positions, rotations, bones, E, piv, new_piv):
+        """Turn ``bones`` (their end points and rotations) by ``E`` about ``piv``."""
+        Em = np.array(E).reshape(3, 3)
+        idx = list(bones)
+        positions[idx] = (positions[idx] - piv) @ Em.T + new_piv
+        rotations[idx] = np.matmul(Em, rotations[idx])

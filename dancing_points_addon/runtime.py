@@ -21,7 +21,7 @@ import numpy as np
 from . import features as F
 from .follower import FollowerOptions, HandHold, Placement, Separation
 from .nets import contact_floor_levels, load_nets
-from .pose import PoseRecovery, bone_vectors_from_pose
+from .pose import LegJoints, PoseRecovery, bone_vectors_from_pose
 from .representation import (DEVICE_FROM_HEAD, blend_root, hip_frame, pose_to_world, root_compose, root_from_head,
                              root_relative, rot_to_local, to_local, to_world)
 from .rotations import quat_to_matrix_one
@@ -311,6 +311,12 @@ class Synthesizer:
         if self._hold is not None:
             from . import ik
             self._fol_effector = ik.EndEffectorIK(**{**self.ik_options, "arm": fo.hold_arm_ik})
+        self._arm_limit = None
+        if fo is not None and fo.arm_turn > 0:
+            from . import ik
+            self._arm_limit = ik.ArmTurnLimit(fo.arm_turn)
+        # her legs kept on the skeleton's joints where the anchor pulls them (``pose.LegJoints``)
+        self._leg_joints = LegJoints(self.bone_vectors["follower"]) if self._anchor > 0.0 else None
 
     def scale(self) -> float:
         """Tracker scale: training height over the user's (paper §7 calibration),
@@ -446,10 +452,16 @@ class Synthesizer:
                 pos[1, :, 2] += dz
                 self.follower.root = self.follower.root + np.array([dx, dz, 0.0, 0.0])
         rigid = [self._recovery[w](pos[w], rot[w]) for w in (0, 1)]
+        if self._leg_joints is not None:  # her legs' twist within the skeleton's (the anchor pulls their joints)
+            self._leg_joints.twist(*rigid[1])
         for d, (p, r), c in zip((self.leader, self.follower), rigid, (lc, fc)):
             d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
+        if self._leg_joints is not None:  # her output's hip joints turn with her pelvis (her state's need not)
+            self._leg_joints.hips(*rigid[1])
         lp, lr = self._recover(0, *rigid[0], lc, tracked_s)
         fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
+        if self._arm_limit is not None:  # her arms no faster than a real dancer's
+            fp, fr = self._arm_limit.step(fp, fr)
         if self._net_steps:  # her contacts are what timed her steps
             fc = self._contact_p[4:]
         self.t += 1

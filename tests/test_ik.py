@@ -642,3 +642,113 @@ def test_swing_arm_ik_reaches_keeps_lengths_and_bends_as_a_hinge(take):
 def test_end_effector_ik_rejects_an_unknown_arm_method():
     with pytest.raises(ValueError, match="arm must be"):
         EndEffectorIK(arm="ccd")
+
+
+# ---------------------------------------------------------------------------
+# arm speed limit and leg joints
+
+
+def _rel_turns(R, bones, ref=J["thorax"]):
+    """Per frame and bone, the turn (degrees) of each bone relative to ``ref`` since the last frame."""
+    rel = np.einsum("tji,tbjk->tbik", R[:, ref], R[:, bones])
+    step = np.einsum("tbji,tbjk->tbik", rel[:-1], rel[1:])
+    return np.degrees(np.arccos(np.clip((np.trace(step, axis1=2, axis2=3) - 1) / 2, -1, 1)))
+
+
+def test_arm_turn_limit_passes_real_arms_and_slows_a_flip(take):
+    """``ArmTurnLimit(30)``: a real dancer's arms (take 60_01, 20 s) pass bit for
+    bit; a forearm flipped by 130 degrees in one frame (what a stateless arm IK
+    does when a hold's target passes the shoulder) turns 30 degrees a frame
+    towards its new pose instead, reaches it in five frames and then follows
+    it exactly; bone lengths and the rigid hand stay."""
+    from dancing_points_addon.ik import ArmTurnLimit
+
+    P, R, _ = take
+    arms = [J[s + n] for s in "lr" for n in ("humerus", "radius")]
+    assert _rel_turns(R, arms).max() < 30.0  # (the real arms stay under the limit)
+    lim = ArmTurnLimit(30.0)
+    for t in range(len(P)):
+        p, r = lim.step(P[t].copy(), R[t].copy())
+        assert np.array_equal(p, P[t]) and np.array_equal(r, R[t])
+    assert lim.engaged == 0
+
+    # a flip: from frame 100 on, the left forearm group turned by 130 degrees about the upper arm's axis
+    el, group = J["lhumerus"], [J["l" + n] for n in ("radius", "wrist", "hand", "fingers", "thumb")]
+    Pf, Rf = P[:160].copy(), R[:160].copy()
+    for t in range(100, 160):
+        axis = Pf[t, el] - Pf[t, J["lclavicle"]]
+        Q = rotation_about(axis / np.linalg.norm(axis), np.radians(130.0))
+        Pf[t, group] = (Pf[t, group] - Pf[t, el]) @ Q.T + Pf[t, el]
+        Rf[t, group] = Q @ Rf[t, group]
+    lim.reset()
+    out = [lim.step(Pf[t].copy(), Rf[t].copy()) for t in range(160)]
+    Po, Ro = np.array([o[0] for o in out]), np.array([o[1] for o in out])
+    turns = _rel_turns(Ro, arms)
+    print(f"\nflip: largest forearm turn {_rel_turns(Rf, arms).max():.1f} deg a frame, limited "
+          f"{turns.max():.1f}; engaged on {lim.engaged} frames")
+    assert _rel_turns(Rf, arms)[99].max() > 120.0 and turns.max() <= 30.0 + 1e-6
+    assert 4 <= lim.engaged <= 5
+    np.testing.assert_allclose(Po[105:], Pf[105:], atol=1e-9)
+    np.testing.assert_allclose(Ro[105:], Rf[105:], atol=1e-9)
+    chain = np.linalg.norm(Po[:, 1:] - Po[:, PARENTS[1:]], axis=-1)
+    np.testing.assert_allclose(chain, np.linalg.norm(Pf[:, 1:] - Pf[:, PARENTS[1:]], axis=-1), atol=1e-9)
+    g = Po[:, group] - Po[:, [J["lradius"]]]
+    np.testing.assert_allclose(np.einsum("tgi,tgi->tg", g, g), np.einsum("tgi,tgi->tg", Pf[:, group] - Pf[:, [J["lradius"]]],
+                                                                         Pf[:, group] - Pf[:, [J["lradius"]]]), atol=1e-9)
+
+
+def rotation_about(axis, angle):
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _twist(R, P, bone):
+    """The bone's twist (degrees) about itself relative to its parent, per frame."""
+    M = np.einsum("tji,tjk->tik", R[:, PARENTS[bone]], R[:, bone])
+    d = np.einsum("tji,tj->ti", R[:, bone], P[:, bone] - P[:, PARENTS[bone]])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    w = 0.5 * np.sqrt(1 + np.trace(M, axis1=1, axis2=2))
+    v = np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], 1) / (4 * w[:, None])
+    return np.degrees(2 * np.arctan2((v * d).sum(1), w))
+
+
+def test_leg_joints_put_hips_on_the_pelvis_and_limit_twist(salsa_dir):
+    """``pose.LegJoints`` on the follower's real legs (take 61_01, 20 s): her
+    hip joints already turn with her pelvis and her leg twists are within the
+    limits, so nothing moves (to rounding). Her hip joint bones swung 25
+    degrees off the pelvis and her thighs twisted 80 degrees: the hip joints go
+    back on the pelvis (the legs move with them, keeping their shape) and the
+    thighs' twist comes back to 45 degrees without moving a joint (the data are
+    float32: equal within 1e-6)."""
+    from dancing_points_addon.pose import LEG_CHAINS, LegJoints
+
+    m = load_amc(salsa_dir / "61_01.amc").subsample(2)
+    P, R = m.positions[:600], m.rotations[:600]
+    legs = LegJoints(m.bone_vectors)
+    for t in range(0, 600, 7):
+        p, r = legs(P[t].copy(), R[t].copy())
+        np.testing.assert_allclose(p, P[t], atol=1e-6)  # (the data are float32)
+        np.testing.assert_allclose(r, R[t], atol=1e-6)
+
+    Pb, Rb = P[::7].copy(), R[::7].copy()
+    for chain in LEG_CHAINS:
+        h, f = chain[0], chain[1]
+        for t in range(len(Pb)):  # the hip joint bone swung about the pelvis
+            Q = rotation_about(np.array([1.0, 0.0, 0.0]), np.radians(25.0))
+            Pb[t, chain] = (Pb[t, chain] - Pb[t, 0]) @ Q.T + Pb[t, 0]
+            Rb[t, chain] = Q @ Rb[t, chain]
+            d = Pb[t, f] - Pb[t, h]  # the thigh twisted about itself
+            Q = rotation_about(d / np.linalg.norm(d), np.radians(80.0))
+            Rb[t, f] = Q @ Rb[t, f]
+    assert np.abs(_twist(Rb, Pb, LEG_CHAINS[0][1])).min() > 45.0
+    out = [legs(Pb[t].copy(), Rb[t].copy()) for t in range(len(Pb))]
+    Po, Ro = np.array([o[0] for o in out]), np.array([o[1] for o in out])
+    for chain in LEG_CHAINS:
+        np.testing.assert_allclose(Ro[:, chain[0]], Ro[:, 0], atol=1e-12)
+        np.testing.assert_allclose(Po[:, chain[0]], P[::7, chain[0]], atol=1e-6)  # back where the pelvis has it
+        shape = Po[:, chain[1:]] - Po[:, chain[:1]]
+        np.testing.assert_allclose(shape, Pb[:, chain[1:]] - Pb[:, chain[:1]], atol=1e-9)  # the leg's shape kept
+        tw = np.abs(_twist(Ro, Po, chain[1]))
+        print(f"\nthigh twist after: {tw.min():.2f}..{tw.max():.2f} deg")
+        assert tw.max() <= 45.0 + 1e-6 and np.mean(np.abs(tw - 45.0) < 1e-6) > 0.9
+        np.testing.assert_allclose(np.abs(_twist(Ro, Po, chain[2])), 0.0, atol=1e-6)  # the shin: a hinge
