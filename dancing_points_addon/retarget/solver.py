@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import blender_math as bm
-from ..ik import rotation_between, two_bone_ik
+from ..ik import rotation_between, smoothstep, two_bone_ik
 from ..rotations import matrix_to_quat, quat_slerp, quat_to_matrix
 from ..skeleton import FEET, JOINT_INDEX, JOINT_NAMES, PARENTS, rest_joints
 from .contacts import detect_contacts, foot_targets, planted, reach_drop, smooth_max
@@ -510,20 +510,30 @@ class Retargeter:
         lm = self.landmarks(W)
         return np.stack([lm["lwrist"], lm["rwrist"]], axis=1)
 
+    FOLDED, FOLDED_FADE = 0.2, 0.15  # × the arm's length: see :meth:`reach`
+
     def reach(self, pose, side, target, weight):
         """Move the wrist of ``side`` towards ``target (T, 3)`` by ``weight (T,)``
         with two-bone arm IK (elbow as the pole). Where the arm is too short, the
-        clavicle first turns to bring the shoulder closer (as ``ik.EndEffectorIK``)."""
+        clavicle first turns to bring the shoulder closer (as ``ik.EndEffectorIK``).
+        Where the target is at the shoulder (under ``FOLDED`` of the arm's length
+        from it, fading in over the next ``FOLDED_FADE``), the arm keeps its own
+        rotations (the source's): the direction from the shoulder to such a target
+        turns fast, and the folded arm would flip with it (a follower's hand on
+        her own shoulder turned the avatar's forearm 100° in a frame)."""
         up, fa, _ = self.arm(side)
         if up is None or fa is None:
-            return
-        act = weight > 0
-        if not act.any():
             return
         W = pose.W
         heads = W[..., :3, 3]
         sh, el = heads[:, up[0]], heads[:, fa[0]]
         wr = self.wrists(W)[:, SIDES.index(side)]
+        arm = np.linalg.norm(el - sh, axis=-1) + np.linalg.norm(wr - el, axis=-1)
+        near = np.linalg.norm(target - sh, axis=-1) / np.maximum(arm, 1e-12)
+        weight = weight * smoothstep((near - self.FOLDED) / self.FOLDED_FADE)
+        act = weight > 0
+        if not act.any():
+            return
         goal = wr + weight[:, None] * (target - wr)
         clav = self._bones_of(side + "clavicle")
         reach = 0.999 * (np.linalg.norm(el - sh, axis=-1) + np.linalg.norm(wr - el, axis=-1))
