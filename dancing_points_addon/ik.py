@@ -606,7 +606,7 @@ class ArmTurnLimit:
     pose along the shortest rotation, and reaches it a few frames later (the
     hold's wrist lags its target meanwhile). The default, 30°, is the fastest
     relative turn of any arm bone in the salsa train frames (both dancers: 99.99th
-    percentile 23–27°, the largest 30–43°), so real-speed arm motion passes
+    percentile 23–27°, the largest 30–44°), so real-speed arm motion passes
     untouched. ``engaged`` counts the frames on which it acted."""
 
     def __init__(self, max_turn: float = 30.0):
@@ -639,16 +639,14 @@ class ArmTurnLimit:
                 if th > lim:  # the upper arm (and the forearm with it) turns lim towards its new pose
                     rh2 = mat_mul(rot_scale(mat_mul(rh, _tr(ph)), lim / th), ph)
                     E = mat_mul(C, mat_mul(rh2, mat_mul(_tr(rh), Ct)))
-                    self._turn(positions, rotations, (hum,) + rigid, E, positions[clav].tolist(),
-                               positions[clav].tolist())
+                    self._turn(positions, rotations, (hum,) + rigid, E, positions[clav].tolist())
                     rh, rf = rh2, mat_mul(Ct, mat_mul(E, Rf))
                     acted = True
                 th = _angle(mat_mul(rf, _tr(pf)))
                 if th > lim:  # the forearm turns lim towards its new pose about the elbow
                     rf2 = mat_mul(rot_scale(mat_mul(rf, _tr(pf)), lim / th), pf)
                     E = mat_mul(C, mat_mul(rf2, mat_mul(_tr(rf), Ct)))
-                    el = positions[hum].tolist()
-                    self._turn(positions, rotations, rigid, E, el, el)
+                    self._turn(positions, rotations, rigid, E, positions[hum].tolist())
                     rf = rf2
                     acted = True
             self._prev[side] = (rh, rf)
@@ -656,9 +654,9 @@ class ArmTurnLimit:
         return positions, rotations
 
     @staticmethod
-    def _turn(positions, rotations, bones, E, piv, new_piv):
+    def _turn(positions, rotations, bones, E, piv):
         """Turn ``bones`` (their end points and rotations) by ``E`` about ``piv``."""
         Em = np.array(E).reshape(3, 3)
         idx = list(bones)
-        positions[idx] = (positions[idx] - piv) @ Em.T + new_piv
+        positions[idx] = (positions[idx] - piv) @ Em.T + piv
         rotations[idx] = np.matmul(Em, rotations[idx])
