@@ -73,7 +73,7 @@ class FollowerOptions:
     # before her foot lock; her tracker's state is fed back from there, each leg bone's twist kept
     # within the skeleton's (``pose.LegJoints``), and her output's hip joints turn with her pelvis.
     # 0.3 (chosen on val) halves her change under 1 mm of tracker noise and plants her feet more
-    # (models/README.md, "Her legs, anchored"; 0: off)
+    # (models/README.md, "Her legs, anchored, by default"; 0: off)
     anchor: float = 0.3
     # degrees a frame: her upper arms and forearms turn at most this much relative to her chest
     # (``ik.ArmTurnLimit``; the fastest real arm in the salsa train frames: 30). A hand hold whose

@@ -356,9 +356,14 @@ def _frame_s(ux, uy, uz, nx, ny, nz):
     return (ux, uy, uz, nx, ny, nz, uy * nz - uz * ny, uz * nx - ux * nz, ux * ny - uy * nx)
 
 
+def _tr(A):
+    """The transpose of a 9-tuple matrix."""
+    return (A[0], A[3], A[6], A[1], A[4], A[7], A[2], A[5], A[8])
+
+
 def _align_s(F0, F1):
     """The rotation taking frame ``F0`` onto ``F1`` (rows as from :func:`_frame_s`): F1ᵀ F0."""
-    return mat_mul((F1[0], F1[3], F1[6], F1[1], F1[4], F1[7], F1[2], F1[5], F1[8]), F0)
+    return mat_mul(_tr(F1), F0)
 
 
 def _hinge_turns(sh, el, wr, nel, nwr, straight=0.05):
@@ -582,10 +587,6 @@ class EndEffectorIK:
         self._compose(delta, hum, R1)
 
 
-def _tr(A):
-    return (A[0], A[3], A[6], A[1], A[4], A[7], A[2], A[5], A[8])
-
-
 def _angle(D):
     """The angle (rad) of the rotation ``D`` (9-tuple)."""
     c = 0.5 * (D[0] + D[4] + D[8] - 1.0)
@@ -635,16 +636,18 @@ class ArmTurnLimit:
             prev = self._prev[side]
             if prev is not None:
                 ph, pf = prev
-                th = _angle(mat_mul(rh, _tr(ph)))
+                D = mat_mul(rh, _tr(ph))
+                th = _angle(D)
                 if th > lim:  # the upper arm (and the forearm with it) turns lim towards its new pose
-                    rh2 = mat_mul(rot_scale(mat_mul(rh, _tr(ph)), lim / th), ph)
+                    rh2 = mat_mul(rot_scale(D, lim / th), ph)
                     E = mat_mul(C, mat_mul(rh2, mat_mul(_tr(rh), Ct)))
                     self._turn(positions, rotations, (hum,) + rigid, E, positions[clav].tolist())
                     rh, rf = rh2, mat_mul(Ct, mat_mul(E, Rf))
                     acted = True
-                th = _angle(mat_mul(rf, _tr(pf)))
+                D = mat_mul(rf, _tr(pf))
+                th = _angle(D)
                 if th > lim:  # the forearm turns lim towards its new pose about the elbow
-                    rf2 = mat_mul(rot_scale(mat_mul(rf, _tr(pf)), lim / th), pf)
+                    rf2 = mat_mul(rot_scale(D, lim / th), pf)
                     E = mat_mul(C, mat_mul(rf2, mat_mul(_tr(rf), Ct)))
                     self._turn(positions, rotations, rigid, E, positions[hum].tolist())
                     rf = rf2

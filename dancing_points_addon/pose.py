@@ -17,7 +17,7 @@ from math import atan2, cos, sin, sqrt
 import numpy as np
 
 from .representation import dot3, norm
-from .skeleton import JOINT_INDEX, PARENTS
+from .skeleton import HIPS, LOWER_BODY, PARENTS
 
 N = len(PARENTS)
 # ANCESTORS[n, k] = 1 when bone k lies on the chain from the root to bone n (k != root)
@@ -108,16 +108,13 @@ def recover_pose(positions: np.ndarray, rotations: np.ndarray, bone_vectors: np.
     return PoseRecovery(bone_vectors)(positions, rotations)
 
 
-
 # Her legs' joints as the CMU skeleton has them (``LegJoints``): the hip joint
 # bone has no degree of freedom (it turns with the pelvis), the shin and toes no
 # twist (a hinge each); the thigh's and foot's twist is limited to the
 # follower's range in the salsa train frames (0.1 to 99.9 percentiles: thigh
 # -43..43 degrees, foot -32..44), rounded out.
-LEG_CHAINS = ([JOINT_INDEX["l" + n] for n in ("hipjoint", "femur", "tibia", "foot", "toes")],
-              [JOINT_INDEX["r" + n] for n in ("hipjoint", "femur", "tibia", "foot", "toes")])
+LEG_CHAINS = (LOWER_BODY[:5].tolist(), LOWER_BODY[5:].tolist())  # hip joint, thigh, shin, foot, toes; left, right
 LEG_TWIST_DEG = (0.0, 45.0, 0.0, 40.0, 0.0)  # per bone of a chain, both sides
-_HIPS = [LEG_CHAINS[0][0], LEG_CHAINS[1][0]]
 
 
 class LegJoints:
@@ -146,10 +143,11 @@ class LegJoints:
 
     def hips(self, positions, rotations):
         """Each hip joint rigid with the pelvis, its leg moved with it."""
-        shift = positions[0] + self.bone_vectors[_HIPS] @ rotations[0].T - positions[_HIPS]
+        hips = list(HIPS)
+        shift = positions[0] + self.bone_vectors[hips] @ rotations[0].T - positions[hips]
         positions[LEG_CHAINS[0]] += shift[0]
         positions[LEG_CHAINS[1]] += shift[1]
-        rotations[_HIPS] = rotations[0]
+        rotations[hips] = rotations[0]
         return positions, rotations
 
 

@@ -536,7 +536,7 @@ class Retargeter:
             return
         goal = wr + weight[:, None] * (target - wr)
         clav = self._bones_of(side + "clavicle")
-        reach = 0.999 * (np.linalg.norm(el - sh, axis=-1) + np.linalg.norm(wr - el, axis=-1))
+        reach = 0.999 * arm
         dist = np.linalg.norm(goal - sh, axis=-1)
         far = act & (dist > reach)
         if clav is not None and far.any():
