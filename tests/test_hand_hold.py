@@ -88,3 +88,32 @@ def test_her_hand_goes_over_to_his_other_hand_gradually():
     print(f"\npartner swap: largest per-frame step {step * 100:.2f} cm, ends {end * 100:.1f} cm from his other hand")
     assert end < o.hold_gap + 0.01
     assert step < 0.03
+
+
+def _follow_moving_hand(o, speed=0.3, frames=60):
+    """His hand moves sideways at ``speed`` m/s in front of her left shoulder,
+    held from the start: per frame, her wrist target's distance from where
+    the hold puts it (``hold_gap`` from his wrist on her side)."""
+    hold = HandHold(o)
+    lags = []
+    for t in range(frames):
+        his, her = _poses((0.18 - 0.3 + speed * t / 30.0, 1.2, 0.4))  # 30 cm either side of her shoulder
+        tg = hold.targets(his, her, PRED_HOLD, np.array([ARM, ARM]))[0]
+        v = her[L_SH] - his[WRISTS[0]]
+        goal = his[WRISTS[0]] + v / np.linalg.norm(v) * o.hold_gap
+        lags.append(np.linalg.norm(tg - goal))
+    return np.array(lags)
+
+
+def test_the_hold_follows_a_moving_hand_without_trailing_it():
+    """The spring's feed-forward (``hold_lead``): once his hand moves at a
+    steady 0.3 m/s, her wrist target trails it by under half of what the
+    spring alone leaves."""
+    o = FollowerOptions()
+    assert o.hold_lead > 0
+    lead = _follow_moving_hand(o)
+    plain = _follow_moving_hand(FollowerOptions(hold_lead=0.0))
+    print(f"\nsteady 0.3 m/s, last second: trails {lead[30:].mean() * 100:.2f} cm with the feed-forward, "
+          f"{plain[30:].mean() * 100:.2f} cm without")
+    assert lead[30:].mean() < 0.5 * plain[30:].mean()
+    assert lead[-1] < 0.5 * plain[-1]
