@@ -95,7 +95,7 @@ class FollowerOptions:
     # steady speed). Chosen on val with 9-frame steps: hand 12.65 -> 11.80 cm, jitter 177 -> 191
     hold_lead: float = 0.5
     hold_lead_smooth: float = 0.7
-    hold_soft_rate: float = 0.05  # the soft partner's weights change by at most this much a frame (0: free)
+    hold_soft_rate: float = 0.04  # the soft partner's weights change by at most this much a frame (0: free)
     hold_arm_ik: str = "swing"  # her arm IK under a hold (``ik.EndEffectorIK``'s ``arm``): "swing" or "pole"
     hold_reach: float = 1.1  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
     # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward)
