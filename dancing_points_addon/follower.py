@@ -35,7 +35,7 @@ hold, blended in and out, the pull following a critically damped spring.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from math import atan2, cos, hypot, sin
+from math import atan2, cos, hypot, pi, sin
 
 import numpy as np
 
@@ -253,6 +253,12 @@ class Separation:
         return hx / n * need * 1.05, hz / n * need * 1.05
 
 
+def _norm(v):
+    """The length of a 3-list, as ``np.sqrt(v @ v)`` rounds it."""
+    a = np.array(v)
+    return float(np.sqrt(a @ a))
+
+
 class HandHold:
     """Hand holds of the duet: when one of the four leader/follower wrist
     pairs is predicted close, the follower's wrist of that pair is pulled by
@@ -301,22 +307,29 @@ class HandHold:
     def targets(self, leader_pos, follower_pos, pred_dist, arm_length):
         """Per follower hand a target (3,) or None. ``pred_dist (2, 2)``: the
         mapping's predicted distance of leader wrist i to follower wrist j;
-        ``arm_length (2,)``: her arms (shoulder to wrist)."""
+        ``arm_length (2,)``: her arms (shoulder to wrist). The element-wise
+        arithmetic is on Python floats (all in numpy, a frame's holds cost 30 µs
+        per dancer); the exponential and the dot products stay numpy's, whose
+        rounding differs (so the duet is bit for bit the same)."""
         o = self.o
         out = [None, None]
+        pd = pred_dist.tolist()
+        his = None  # his wrists, as lists, once needed
         for j in (0, 1):
-            i = int(np.argmin(pred_dist[:, j]))
-            d = float(pred_dist[i, j])
+            col = (pd[0][j], pd[1][j])
+            i = 1 if col[1] < col[0] else 0
+            d = col[i]
             if o.hold_soft > 0:
                 # soft partner: his two hands weighted by a softmax of their
                 # predicted distances (no discrete choice to flip on noise)
-                e = np.exp(-(pred_dist[:, j] - d) / o.hold_soft)
-                soft = e / e.sum()
+                e0, e1 = np.exp(-(pred_dist[:, j] - d) / o.hold_soft).tolist()  # numpy's exp, as before
+                sm = e0 + e1
+                soft = (e0 / sm, e1 / sm)
                 if o.hold_soft_rate > 0 and self._soft[j] is not None:
                     # his hands swap as her partner gradually: her wrist is not swept across
-                    prev = self._soft[j]
-                    soft = prev + np.clip(soft - prev, -o.hold_soft_rate, o.hold_soft_rate)
-                ds = float(soft @ pred_dist[:, j])
+                    r = o.hold_soft_rate
+                    soft = tuple(p + min(max(q - p, -r), r) for p, q in zip(self._soft[j], soft))
+                ds = float(np.array(soft) @ pred_dist[:, j])
                 self.active[j] = ds < (o.hold_off if self.active[j] else o.hold_on)
                 self._soft[j] = soft
                 self._ds[j] = ds
@@ -324,7 +337,7 @@ class HandHold:
                 # the hold stays with its partner while that one is close; the
                 # other of his hands takes over when clearly closer (the spring
                 # carries her wrist across)
-                dp = float(pred_dist[self.partner[j], j])
+                dp = col[self.partner[j]]
                 if o.hold_switch >= 0 and i != self.partner[j] and d < dp - o.hold_switch:
                     self.partner[j], dp = i, d
                 self.active[j] = dp < o.hold_off
@@ -340,20 +353,23 @@ class HandHold:
             else:
                 self.weight[j] = min(1.0, self.weight[j] + step) if self.active[j] else max(0.0, self.weight[j] - step)
             if self.weight[j] <= 0.0 and (o.hold_spring <= 0 or self._offset[j] is None
-                                          or float(np.abs(self._offset[j]).max()) < 1e-4):
+                                          or max(abs(x) for x in self._offset[j]) < 1e-4):
                 self._offset[j] = self._velocity[j] = self._goal[j] = self._lead[j] = None
                 continue
+            if his is None:
+                his = leader_pos[list(WRISTS)]
             if o.hold_soft > 0:
-                lw = self._soft[j] @ leader_pos[list(WRISTS)]
+                lw = (np.array(self._soft[j]) @ his).tolist()
             else:
-                lw = leader_pos[WRISTS[self.partner[j]]]
-            fw = follower_pos[WRISTS[j]]
-            sh = follower_pos[self.SHOULDERS[j]]
-            v = sh - lw
-            n = float(np.sqrt(v @ v))
-            goal = lw + (v / n * o.hold_gap if n > 1e-6 else 0.0)
+                lw = his[self.partner[j]].tolist()
+            fw = follower_pos[WRISTS[j]].tolist()
+            sh = follower_pos[self.SHOULDERS[j]].tolist()
+            v = [a - b for a, b in zip(sh, lw)]
+            n = _norm(v)
+            goal = [a + b / n * o.hold_gap for a, b in zip(lw, v)] if n > 1e-6 else lw
             # within reach of her shoulder: full weight up to hold_reach - 0.1 of the arm, none past hold_reach
-            reach = float(np.sqrt((goal - sh) @ (goal - sh))) / max(float(arm_length[j]), 1e-6)
+            g = [a - b for a, b in zip(goal, sh)]
+            reach = _norm(g) / max(float(arm_length[j]), 1e-6)
             w = self.weight[j] * min(max((o.hold_reach - reach) / 0.1, 0.0), 1.0)
             if o.hold_near > 0:
                 # his hand at her shoulder (his hand on her back, not a hand hold):
@@ -362,30 +378,33 @@ class HandHold:
             w = w * w * (3.0 - 2.0 * w)  # smoothstep
             # her wrist's offset from her body follows the hold smoothly: the
             # target is the previous frame's offset eased towards this one
-            off = w * (goal - fw)
+            off = [w * (a - b) for a, b in zip(goal, fw)]
             prev = self._offset[j]
             if o.hold_spring > 0:
                 # critically damped spring (semi-implicit Euler at 30 Hz): the
                 # pull's acceleration is bounded, so the wrist does not jerk
                 if prev is None:
-                    prev, vel = np.zeros(3), np.zeros(3)
+                    prev, vel = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
                 else:
                     vel = self._velocity[j]
-                om = 2.0 * np.pi * o.hold_spring
+                om = 2.0 * pi * o.hold_spring
                 dt = 1.0 / 30.0
-                lead = 0.0
+                lead = (0.0, 0.0, 0.0)
                 if o.hold_lead > 0 and self._goal[j] is not None:
-                    lead = o.hold_lead * (off - self._goal[j]) / dt  # the pull's own velocity
+                    # the pull's own velocity, fed forward
+                    lead = [o.hold_lead * (a - b) / dt for a, b in zip(off, self._goal[j])]
                     if o.hold_lead_smooth > 0 and self._lead[j] is not None:
-                        lead = o.hold_lead_smooth * self._lead[j] + (1.0 - o.hold_lead_smooth) * lead
+                        ls = o.hold_lead_smooth
+                        lead = [ls * a + (1.0 - ls) * b for a, b in zip(self._lead[j], lead)]
                     self._lead[j] = lead
                 self._goal[j] = off
-                vel = vel + dt * (om * om * (off - prev) + 2.0 * om * (lead - vel))
-                off = prev + dt * vel
+                k1, k2 = om * om, 2.0 * om
+                vel = [u + dt * (k1 * (a - p) + k2 * (c - u)) for u, a, p, c in zip(vel, off, prev, lead)]
+                off = [p + dt * u for p, u in zip(prev, vel)]
                 self._velocity[j] = vel
             elif prev is not None and o.hold_smooth > 0:
-                off = o.hold_smooth * prev + (1.0 - o.hold_smooth) * off
+                off = [o.hold_smooth * p + (1.0 - o.hold_smooth) * a for p, a in zip(prev, off)]
             self._offset[j] = off
             if o.hold_spring > 0 or w > 0.0:
-                out[j] = fw + off
+                out[j] = np.array([a + b for a, b in zip(fw, off)])
         return out
