@@ -40,7 +40,7 @@ from math import atan2, cos, hypot, pi, sin
 import numpy as np
 
 from .features import FPS
-from .representation import blend_root, relative_rows, root_compose, segments_gap
+from .representation import blend_root, compose_floats, relative_rows, segments_gap
 from .skeleton import JOINT_INDEX, WRISTS
 
 PELVIS, NECK = JOINT_INDEX["root"], JOINT_INDEX["lowerneck"]
@@ -48,7 +48,7 @@ PELVIS, NECK = JOINT_INDEX["root"], JOINT_INDEX["lowerneck"]
 
 def _compose(ref, rel):
     """:func:`~.representation.root_compose` of two roots given as lists."""
-    return root_compose(np.array(ref), np.array(rel)).tolist()
+    return compose_floats([float(v) for v in ref], [float(v) for v in rel])
 
 
 @dataclass(frozen=True)

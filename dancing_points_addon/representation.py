@@ -166,12 +166,17 @@ def root_relative(ref: np.ndarray, root: np.ndarray) -> np.ndarray:
 def root_compose(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
     """``ref · rel``: inverse of :func:`root_relative`."""
     if ref.ndim == 1 and rel.ndim == 1:  # one frame (the runtime, per frame), in plain floats
-        x0, z0, c, s = ref.tolist()
-        r0, r1, cr, sr = rel.tolist()
-        co, so = cr * c - sr * s, sr * c + cr * s
-        n = 1.0 / max(sqrt(co * co + so * so), 1e-300)
-        return np.array([x0 + c * r0 + s * r1, z0 - s * r0 + c * r1, co * n, so * n])
+        return np.array(compose_floats(ref.tolist(), rel.tolist()))
     return _on_rows(compose_rows, ref, rel)
+
+
+def compose_floats(ref, rel) -> list:
+    """:func:`root_compose` of one frame's roots given as 4 plain floats each."""
+    x0, z0, c, s = ref
+    r0, r1, cr, sr = rel
+    co, so = cr * c - sr * s, sr * c + cr * s
+    n = 1.0 / max(sqrt(co * co + so * so), 1e-300)
+    return [x0 + c * r0 + s * r1, z0 - s * r0 + c * r1, co * n, so * n]
 
 
 # Component-major ("rows") forms: roots as ``(4, n)`` arrays, one row per
