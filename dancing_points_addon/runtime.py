@@ -462,6 +462,9 @@ class Synthesizer:
         fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
         if self._arm_limit is not None:  # her arms no faster than a real dancer's
             fp, fr = self._arm_limit.step(fp, fr)
+        if self._placement is not None and self._lockers is not None and self.follower_options.pull_planted >= 0:
+            # her planted share, for her placement's pull on the next frame
+            self._placement.support = sum(lock is not None for side in self._lockers[1].locks for lock in side) / 4.0
         if self._net_steps:  # her contacts are what timed her steps
             fc = self._contact_p[4:]
         self.t += 1

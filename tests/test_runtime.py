@@ -497,3 +497,34 @@ def test_pose_anchor_halves_her_change_under_noise(test_duets):
     for k in ("leader", "follower"):
         assert fig[k][0] <= 1.0 and fig[k][1] <= 5.0
     assert fig["follower"][0] < 0.8 * fig["follower, not anchored"][0]
+
+
+def test_placement_pull_while_planted_reads_her_foot_lock(take10, duet10):
+    """``FollowerOptions.pull_planted``: her placement's pull while her feet are
+    locked. The runtime gives her placement the share of her foot points
+    locked on each frame; with the pull off while planted, her root is pulled
+    less towards its target, so she lags it more. Off by default (< 0): the
+    share is then not even counted."""
+    from dancing_points_addon.follower import FollowerOptions
+
+    from dancing_points_addon.resample import resample_take
+
+    synth = Synthesizer(follower=FollowerOptions(pull_planted=0.0))
+    synth.reset()
+    take = take10[0]
+    tk = resample_take(take, F.FPS)
+    support, gap = [], []
+    for t in range(tk.n_frames):
+        synth.step(tk.positions[t], tk.quats[t], tk.valid[t])
+        support.append(synth._placement.support)
+        root, target = synth.follower.root, synth._fol_target[1]
+        gap.append(np.hypot(root[0] - target[0], root[1] - target[1]))
+    support = np.array(support)
+    print(f"\nher planted share: 0 on {np.mean(support == 0):.0%} of frames, 1 on {np.mean(support == 1):.0%}; "
+          f"her root {np.mean(gap) * 100:.1f} cm from its target on average")
+    assert set(np.round(support * 4).astype(int)) <= {0, 1, 2, 3, 4}
+    assert len(set(support.tolist())) >= 3 and (support == 1).mean() > 0.05
+    default = Synthesizer()
+    default.synthesize(take)
+    assert default._placement.support == 0.0  # not counted when off
+    assert not np.allclose(synth.synthesize(take).follower_positions, duet10.follower_positions)
