@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from math import sqrt
+from math import atan2, sqrt
 
 import numpy as np
 
 from . import features as F
-from .follower import FollowerOptions, HandHold, Placement, Separation
+from .follower import FollowerOptions, HandHold, HipTwist, Placement, Separation
 from .nets import contact_floor_levels, load_nets
 from .pose import LegJoints, PoseRecovery, bone_vectors_from_pose
 from .representation import (DEVICE_FROM_HEAD, blend_root, hip_frame, pose_to_world, root_compose, root_from_head,
@@ -315,6 +315,7 @@ class Synthesizer:
         if fo is not None and fo.arm_turn > 0:
             from . import ik
             self._arm_limit = ik.ArmTurnLimit(fo.arm_turn)
+        self._hip_twist = HipTwist(fo) if fo is not None and fo.hip_twist > 0 else None
         # her legs kept on the skeleton's joints where the anchor pulls them (``pose.LegJoints``)
         self._leg_joints = LegJoints(self.bone_vectors["follower"]) if self._anchor > 0.0 else None
 
@@ -458,6 +459,8 @@ class Synthesizer:
             d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
         if self._leg_joints is not None:  # her output's hip joints turn with her pelvis (her state's need not)
             self._leg_joints.hips(*rigid[1])
+        if self._hip_twist is not None:  # her hips towards where the mapping says she faces
+            self._hip_twist.step(*rigid[1], atan2(f_roots[0][3], f_roots[0][2]))
         lp, lr = self._recover(0, *rigid[0], lc, tracked_s)
         fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
         if self._arm_limit is not None:  # her arms no faster than a real dancer's
