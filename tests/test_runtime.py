@@ -473,10 +473,11 @@ def test_pose_anchor_halves_her_change_under_noise(test_duets):
     """1 mm of Gaussian noise on every tracked position of the 13 test takes: the
     per-frame change of each dancer (mean over joints) against the clean duet.
     With her lower body pulled 30 % a frame to the pose anchor (the default,
-    ``FollowerOptions.anchor``) she changes by about half as much as without
-    it (``anchor=0``; 1.01 / 4.10 cm, mean / 99th percentile, through take
-    files in `training.evaluate`, before the anchor was the default), within
-    the goal of 1 / 5 cm; the leader is within it either way."""
+    ``FollowerOptions.anchor``) she changes by under 0.8 of what she does
+    without it (``anchor=0``): 0.71 / 3.68 cm against 0.98 / 3.92 (mean / 99th
+    percentile; 0.58 against 1.01 before her hips turned with the mapping's
+    heading), within the goal of 1 / 5 cm; the leader is within it either
+    way."""
     from dancing_points_addon.follower import FollowerOptions
 
     rng = np.random.default_rng(0)
