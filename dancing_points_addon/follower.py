@@ -275,6 +275,8 @@ class HipTwist:
     degrees off against her hips' 55.6). Per frame, in place."""
 
     _LEGS = [PELVIS] + [int(i) for i in LOWER_BODY]
+    # the SPEC joint order has them first: a slice (a view) costs less than an index list
+    _ROWS = slice(0, len(_LEGS)) if _LEGS == list(range(len(_LEGS))) else _LEGS
 
     def __init__(self, options: FollowerOptions):
         self.o = options
@@ -295,7 +297,7 @@ class HipTwist:
         c, s_ = cos(self.turn), sin(self.turn)
         turn = np.array([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]])
         pivot = positions[PELVIS].copy()
-        legs = self._LEGS
+        legs = self._ROWS
         positions[legs] = (positions[legs] - pivot) @ turn.T + pivot
         rotations[legs] = turn @ rotations[legs]
         return positions, rotations

@@ -529,3 +529,38 @@ def test_placement_pull_while_planted_reads_her_foot_lock(take10, duet10):
     default.synthesize(take)
     assert default._placement.support == 0.0  # not counted when off
     assert not np.allclose(synth.synthesize(take).follower_positions, duet10.follower_positions)
+
+
+def test_hip_twist_turns_her_hips_not_her_shoulders(take10):
+    """``follower.HipTwist`` on a real follower pose (take 10): her hips turn
+    about the vertical through her pelvis the share ``hip_twist`` of the way to
+    the given heading, at most ``hip_twist_max``, eased by ``hip_twist_rate``;
+    her upper body and her pelvis's position do not move, and her legs keep
+    their shape."""
+    from math import atan2, degrees, radians
+
+    from dancing_points_addon.follower import FollowerOptions, HipTwist
+    from dancing_points_addon.representation import hip_heading
+
+    fol = take10[4]
+    pos0, rot0 = fol.positions[400].astype(np.float64), fol.rotations[400].astype(np.float64)
+    h0 = float(hip_heading(pos0[None])[0])
+
+    def turned(heading, **kw):
+        p, r = pos0.copy(), rot0.copy()
+        HipTwist(FollowerOptions(**kw)).step(p, r, heading)
+        d = float(hip_heading(p[None])[0]) - h0
+        return p, r, degrees(atan2(np.sin(d), np.cos(d)))
+
+    p, r, d = turned(h0 + radians(40.0), hip_twist_rate=1.0)
+    print(f"\nhips asked 40 deg round, half way: {d:.2f} deg")
+    assert d == pytest.approx(20.0, abs=1e-6)
+    assert np.array_equal(p[11:], pos0[11:]) and np.array_equal(r[11:], rot0[11:])  # upper body as it was
+    assert np.array_equal(p[0], pos0[0])  # her pelvis where it was
+    legs = slice(0, 11)
+    assert np.allclose(np.linalg.norm(p[legs, None] - p[None, legs], axis=-1),
+                       np.linalg.norm(pos0[legs, None] - pos0[None, legs], axis=-1), atol=1e-12)
+    assert np.allclose(r[legs] @ np.swapaxes(r[legs], -1, -2), np.eye(3), atol=1e-12)
+    assert turned(h0 - radians(150.0), hip_twist_rate=1.0)[2] == pytest.approx(-45.0, abs=1e-6)  # at most 45
+    assert turned(h0 + radians(40.0))[2] == pytest.approx(0.2 * 20.0, abs=1e-6)  # eased 0.2 a frame
+    assert turned(h0 + radians(40.0), hip_twist=0.0, hip_twist_rate=1.0)[2] == pytest.approx(0.0, abs=1e-9)
