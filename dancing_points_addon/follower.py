@@ -30,7 +30,9 @@ walk away from the root nor stretch.
 :class:`Separation` keeps the two torsos (the pelvis-to-lower-neck axes)
 at least ``min_distance`` apart by moving the follower horizontally, and
 :class:`HandHold` bends her arms onto the leader's hands when the two are in a
-hold, blended in and out, the pull following a critically damped spring.
+hold, blended in and out, the pull following a critically damped spring, and
+:class:`HipTwist` turns her hips towards where the mapping says she faces
+while her upper body stays turned to him.
 """
 from __future__ import annotations
 
