@@ -151,12 +151,30 @@ class _Net(nn.Module):
 class MappingNet(_Net):
     """Leader's past 0.5 s of three points -> both dancers' future 1 s."""
 
-    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, dropout=0.1):
+    # loss on the normalised outputs: "mse" (squared error: the conditional mean), "l1"
+    # (absolute error: a per-coordinate median) or "norm" (the Euclidean norm of each
+    # frame's position, heading and tracked point per dancer, unsquared: a geometric median,
+    # what a mean distance rewards)
+    LOSSES = ("mse", "l1", "norm")
+
+    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, dropout=0.1, loss="mse"):
         super().__init__(n_in, n_out, noise)
+        if loss not in self.LOSSES:
+            raise ValueError(f"loss: one of {self.LOSSES}, not {loss!r}")
+        self.loss_kind = loss
         self.net = mlp(n_in, n_out, hidden, layers, dropout)
 
     def _loss(self, xn, yn):
-        return {"rec": self._rec(self.net(xn), yn)}
+        pred = self.net(xn)
+        if self.loss_kind == "l1":
+            return {"rec": (pred - yn).abs().mean()}
+        if self.loss_kind == "norm" and self.n_out % F.FRAME_DIM == 0:
+            d = (pred - yn).view(-1, self.n_out // F.FRAME_DIM, F.FRAME_DIM)
+            # groups of one frame of one dancer: root position (x, z), heading (cos, sin), three points
+            groups = [(0, 2), (2, 4)] + [(F.ROOT_DIM + 3 * k, F.ROOT_DIM + 3 * k + 3) for k in range(3)]
+            norms = [((d[..., a:b] ** 2).sum(-1) + 1e-12).sqrt() for a, b in groups]
+            return {"rec": torch.stack(norms, -1).mean()}
+        return {"rec": self._rec(pred, yn)}
 
     def _predict(self, xn):
         return self.net(xn)

@@ -115,6 +115,9 @@ def main(argv=None):
     ap.add_argument("--map-epochs", type=int, default=None)
     ap.add_argument("--map-hidden", type=int, default=None, help="mapping hidden units (default: the config's)")
     ap.add_argument("--map-wd", type=float, default=None, help="mapping AdamW weight decay (default 1e-4)")
+    ap.add_argument("--map-loss", choices=MappingNet.LOSSES, default="mse",
+                    help="mapping loss on the normalised outputs: mse (shipped), l1, or norm (each frame's "
+                         "position, heading and tracked point per dancer, unsquared)")
     ap.add_argument("--map-timewarp", default=None,
                     help="mapping: also train on the clips replayed at these speeds, e.g. 0.9,1.1")
     ap.add_argument("--paper-decoder", action="store_true",
@@ -184,9 +187,9 @@ def main(argv=None):
         epochs = args.map_epochs or cfg["map_epochs"]
         hidden = args.map_hidden or cfg["map_hidden"]
         wd = 1e-4 if args.map_wd is None else args.map_wd
-        m = MappingNet(F.MAP_IN, F.MAP_OUT, hidden, noise=noise, dropout=dropout)
+        m = MappingNet(F.MAP_IN, F.MAP_OUT, hidden, noise=noise, dropout=dropout, loss=args.map_loss)
         info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed, weight_decay=wd)
-        info.update(noise=noise, dropout=dropout, weight_decay=wd, timewarp=args.map_timewarp)
+        info.update(noise=noise, dropout=dropout, weight_decay=wd, timewarp=args.map_timewarp, loss=args.map_loss)
         export(m, "mapping", os.path.join(args.out, "mapping.onnx"), F.MAP_IN,
                {"hidden": hidden, "train": info, **split_meta}, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": hidden, **split_meta})
