@@ -111,9 +111,8 @@ class FollowerOptions:
     hold_lead_smooth: float = 0.7
     hold_soft_rate: float = 0.04  # the soft partner's weights change by at most this much a frame (0: free)
     hold_arm_ik: str = "swing"  # her arm IK under a hold (``ik.EndEffectorIK``'s ``arm``): "swing" or "pole"
-    hold_reach: float = 1.2  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
-    # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward). 1.2 chosen
-    # on val with the norm-loss mapping (four seeds: hand 12.22 -> 11.58 cm against 1.1)
+    hold_reach: float = 1.1  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
+    # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward)
     hold_near: float = 0.35  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1;
     # his hand at her shoulder is his hand on her back, not a hold; 0: never)
     # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md, "Her steps,

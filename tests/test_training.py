@@ -127,6 +127,28 @@ def test_tracker_loss_options_route_gradients_as_documented(clips):
     assert abs(float(plain["match"]) - float(squared["match"])) > 1e-6
 
 
+def test_mapping_norm_loss_measures_each_point_per_frame():
+    """The mapping's norm loss (the shipped one) takes the Euclidean length of
+    each frame's root position, heading and three tracked points per dancer,
+    unsquared, and averages them: an error of (3, 4) cm-units in one root
+    position, or of (0, 3, 4) in one tracked point, counts 5 over the 60 × 5
+    groups; spread over two groups it counts each part's own length."""
+    m = MappingNet(F.MAP_IN, F.MAP_OUT, 8, loss="norm")
+    groups = 2 * F.FUTURE * 5
+    yn = torch.zeros(1, F.MAP_OUT)
+    for where in ([0, 1], [F.ROOT_DIM + 3 + 1, F.ROOT_DIM + 3 + 2]):  # a root position, the second point
+        d = torch.zeros(1, F.MAP_OUT)
+        d[0, [F.FRAME_DIM * 7 + w for w in where]] = torch.tensor([3.0, 4.0])
+        assert m.map_loss(d, yn).item() == pytest.approx(5.0 / groups, abs=1e-5)
+    d = torch.zeros(1, F.MAP_OUT)
+    d[0, [F.FRAME_DIM * 7 + 1, F.FRAME_DIM * 7 + 2]] = torch.tensor([3.0, 4.0])  # root z and heading cos
+    assert m.map_loss(d, yn).item() == pytest.approx(7.0 / groups, abs=1e-5)
+    # the squared error of the earlier recipe: (9 + 16) / outputs
+    assert MappingNet(F.MAP_IN, F.MAP_OUT, 8, loss="mse").map_loss(d, yn).item() == pytest.approx(25.0 / F.MAP_OUT)
+    with pytest.raises(ValueError):
+        MappingNet(F.MAP_IN, 30, 8, loss="norm")
+
+
 def test_training_samples_stay_inside_train_frames(salsa_dir, clips):
     """Every sample's future window ends inside its clip, and each clip holds exactly
     the train frames of its take, so no test frame reaches training or normalisation."""

@@ -161,20 +161,25 @@ class MappingNet(_Net):
         super().__init__(n_in, n_out, noise)
         if loss not in self.LOSSES:
             raise ValueError(f"loss: one of {self.LOSSES}, not {loss!r}")
+        if loss == "norm" and n_out % F.FRAME_DIM:
+            raise ValueError(f"the norm loss needs whole frames of {F.FRAME_DIM} outputs, not {n_out}")
         self.loss_kind = loss
         self.net = mlp(n_in, n_out, hidden, layers, dropout)
 
     def _loss(self, xn, yn):
-        pred = self.net(xn)
+        return {"rec": self.map_loss(self.net(xn), yn)}
+
+    def map_loss(self, pred, yn):
+        """The loss of normalised predictions ``pred`` against targets ``yn``."""
         if self.loss_kind == "l1":
-            return {"rec": (pred - yn).abs().mean()}
-        if self.loss_kind == "norm" and self.n_out % F.FRAME_DIM == 0:
+            return (pred - yn).abs().mean()
+        if self.loss_kind == "norm":
             d = (pred - yn).view(-1, self.n_out // F.FRAME_DIM, F.FRAME_DIM)
             # groups of one frame of one dancer: root position (x, z), heading (cos, sin), three points
             groups = [(0, 2), (2, 4)] + [(F.ROOT_DIM + 3 * k, F.ROOT_DIM + 3 * k + 3) for k in range(3)]
             norms = [((d[..., a:b] ** 2).sum(-1) + 1e-12).sqrt() for a, b in groups]
-            return {"rec": torch.stack(norms, -1).mean()}
-        return {"rec": self._rec(pred, yn)}
+            return torch.stack(norms, -1).mean()
+        return self._rec(pred, yn)
 
     def _predict(self, xn):
         return self.net(xn)
