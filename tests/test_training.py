@@ -128,11 +128,12 @@ def test_tracker_loss_options_route_gradients_as_documented(clips):
 
 
 def test_mapping_norm_loss_measures_each_point_per_frame():
-    """The mapping's norm loss (the shipped one) takes the Euclidean length of
-    each frame's root position, heading and three tracked points per dancer,
-    unsquared, and averages them: an error of (3, 4) cm-units in one root
-    position, or of (0, 3, 4) in one tracked point, counts 5 over the 60 × 5
-    groups; spread over two groups it counts each part's own length."""
+    """The mapping's norm loss (``train --map-loss norm``; measured, not shipped)
+    takes the Euclidean length of each frame's root position, heading and three
+    tracked points per dancer, unsquared, and averages them: an error of (3, 4)
+    normalised units in one root position, or of (0, 3, 4) in one tracked
+    point, counts 5 over the 60 × 5 groups; spread over two groups it counts
+    each part's own length."""
     m = MappingNet(F.MAP_IN, F.MAP_OUT, 8, loss="norm")
     groups = 2 * F.FUTURE * 5
     yn = torch.zeros(1, F.MAP_OUT)
