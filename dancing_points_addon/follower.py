@@ -93,6 +93,13 @@ class FollowerOptions:
     hip_twist: float = 0.5
     hip_twist_max: float = 45.0
     hip_twist_rate: float = 0.2
+    # degrees: in her output (after her foot lock), each thigh's twist about itself against her pelvis
+    # within this (``pose.LegJoints.twist``; only the bones' roll changes, no joint moves; 0: her
+    # state's limit, ``pose.LEG_TWIST_DEG``). Her state's thighs sit at its 45 degrees (median 30-37
+    # on the sample take) where the real follower's twist is 9-10 at the median and 32-33 at the
+    # 99th percentile (salsa take 01): the skin at her hips stretched (99.9 % of edges within 1.85 ×
+    # rest with the norm-loss mapping; 1.78 at 30 degrees)
+    out_thigh_twist: float = 30.0
     hold: bool = True  # hand holds by arm IK
     hold_on: float = 0.7  # m, predicted wrist distance under which a hold is full
     hold_off: float = 1.0  # m, over which there is none
@@ -111,8 +118,9 @@ class FollowerOptions:
     hold_lead_smooth: float = 0.7
     hold_soft_rate: float = 0.04  # the soft partner's weights change by at most this much a frame (0: free)
     hold_arm_ik: str = "swing"  # her arm IK under a hold (``ik.EndEffectorIK``'s ``arm``): "swing" or "pole"
-    hold_reach: float = 1.1  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
-    # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward)
+    hold_reach: float = 1.2  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
+    # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward). 1.2 chosen
+    # on val with the norm-loss mapping (four seeds: hand 12.22 -> 11.58 cm against 1.1)
     hold_near: float = 0.35  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1;
     # his hand at her shoulder is his hand on her back, not a hold; 0: never)
     # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md, "Her steps,

@@ -136,9 +136,10 @@ class LegJoints:
     def __call__(self, positions, rotations):
         return self.twist(*self.hips(positions, rotations))
 
-    def twist(self, positions, rotations):
-        """Each leg bone's twist within ``LEG_TWIST_DEG`` (no joint moves)."""
-        clamp_twist(rotations, self.rest_dir, LEG_CHAINS[0], LEG_CHAINS[1], self.limits)
+    def twist(self, positions, rotations, limits=None):
+        """Each leg bone's twist within ``LEG_TWIST_DEG`` (or ``limits``, radians
+        per bone of a chain; no joint moves)."""
+        clamp_twist(rotations, self.rest_dir, LEG_CHAINS[0], LEG_CHAINS[1], self.limits if limits is None else limits)
         return positions, rotations
 
     def hips(self, positions, rotations):

@@ -21,7 +21,7 @@ import numpy as np
 from . import features as F
 from .follower import FollowerOptions, HandHold, HipTwist, Placement, Separation
 from .nets import contact_floor_levels, load_nets
-from .pose import LegJoints, PoseRecovery, bone_vectors_from_pose
+from .pose import LEG_TWIST_DEG, LegJoints, PoseRecovery, bone_vectors_from_pose
 from .representation import (DEVICE_FROM_HEAD, blend_root, hip_frame, pose_to_world, root_compose, root_from_head,
                              root_relative, rot_to_local, to_local, to_world)
 from .rotations import quat_to_matrix_one
@@ -318,6 +318,12 @@ class Synthesizer:
         self._hip_twist = HipTwist(fo) if fo is not None and fo.hip_twist > 0 else None
         # her legs kept on the skeleton's joints where the anchor pulls them (``pose.LegJoints``)
         self._leg_joints = LegJoints(self.bone_vectors["follower"]) if self._anchor > 0.0 else None
+        # her output's thighs: their twist within ``out_thigh_twist`` (the other leg bones' as her state's)
+        out_twist = float(fo.out_thigh_twist) if fo is not None else 0.0
+        self._out_twist = None
+        if out_twist > 0.0:
+            self._out_twist = np.radians([LEG_TWIST_DEG[0], out_twist] + list(LEG_TWIST_DEG[2:])).tolist()
+            self._leg_joints = self._leg_joints or LegJoints(self.bone_vectors["follower"])
 
     def scale(self) -> float:
         """Tracker scale: training height over the user's (paper §7 calibration),
@@ -453,11 +459,11 @@ class Synthesizer:
                 pos[1, :, 2] += dz
                 self.follower.root = self.follower.root + np.array([dx, dz, 0.0, 0.0])
         rigid = [self._recovery[w](pos[w], rot[w]) for w in (0, 1)]
-        if self._leg_joints is not None:  # her legs' twist within the skeleton's (the anchor pulls their joints)
+        if self._anchor > 0.0:  # her legs' twist within the skeleton's (the anchor pulls their joints)
             self._leg_joints.twist(*rigid[1])
         for d, (p, r), c in zip((self.leader, self.follower), rigid, (lc, fc)):
             d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
-        if self._leg_joints is not None:  # her output's hip joints turn with her pelvis (her state's need not)
+        if self._anchor > 0.0:  # her output's hip joints turn with her pelvis (her state's need not)
             self._leg_joints.hips(*rigid[1])
         if self._hip_twist is not None:  # her hips towards where the mapping says she faces
             self._hip_twist.step(*rigid[1], atan2(f_roots[0][3], f_roots[0][2]))
@@ -497,6 +503,8 @@ class Synthesizer:
                 if who == 1 and fo is not None and fo.lock_floor >= 0:  # her new locks go on her floor
                     self._lockers[1].floor = [f + fo.lock_floor for f in self._floor[1]]
             pos, rot = self._lockers[who].step(pos, rot, contacts)
+        if who == 1 and self._out_twist is not None:  # her thighs' twist within the real follower's
+            pos, rot = self._leg_joints.twist(pos, rot, self._out_twist)
         if targets is not None:
             effector = self._effector if who == 0 else self._fol_effector
             if effector is not None:

@@ -11,9 +11,20 @@ import numpy as np
 from conftest import MODELS, ROOT, SALSA
 from dancing_points_addon.formats.take import COLUMNS, Take
 from dancing_points_addon.rotations import matrix_to_quat, quat_to_matrix
-from dancing_points_addon.skeleton import Motion
+from dancing_points_addon.skeleton import PARENTS, Motion
 
 IDENT = [1.0, 0.0, 0.0, 0.0]
+
+
+def bone_twist_deg(R, P, bone):
+    """The bone's twist (degrees) about itself relative to its parent, per frame
+    (world rotations ``R (T, 31, 3, 3)``, positions ``P (T, 31, 3)``)."""
+    M = np.einsum("tji,tjk->tik", R[:, PARENTS[bone]], R[:, bone])
+    d = np.einsum("tji,tj->ti", R[:, bone], P[:, bone] - P[:, PARENTS[bone]])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    w = 0.5 * np.sqrt(1 + np.trace(M, axis1=1, axis2=2))
+    v = np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], 1) / (4 * w[:, None])
+    return np.degrees(2 * np.arctan2((v * d).sum(1), w))
 
 
 def quat_angle_deg(a, b):

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from training import metrics
+from helpers import bone_twist_deg
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.foot_lock import FootLocker
 from dancing_points_addon.ik import EndEffectorIK, rotation_between, two_bone_s, two_bone_ik
@@ -702,17 +703,7 @@ def rotation_about(axis, angle):
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
-def _twist(R, P, bone):
-    """The bone's twist (degrees) about itself relative to its parent, per frame."""
-    M = np.einsum("tji,tjk->tik", R[:, PARENTS[bone]], R[:, bone])
-    d = np.einsum("tji,tj->ti", R[:, bone], P[:, bone] - P[:, PARENTS[bone]])
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    w = 0.5 * np.sqrt(1 + np.trace(M, axis1=1, axis2=2))
-    v = np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], 1) / (4 * w[:, None])
-    return np.degrees(2 * np.arctan2((v * d).sum(1), w))
-
-
-def test_leg_joints_put_hips_on_the_pelvis_and_limit_twist(salsa_dir):
+def test_leg_joints_put_hips_on_the_pelvis_and_limitbone_twist_deg(salsa_dir):
     """``pose.LegJoints`` on the follower's real legs (take 61_01, 20 s): her
     hip joints already turn with her pelvis and her leg twists are within the
     limits, so nothing moves (to rounding). Her hip joint bones swung 25
@@ -740,7 +731,7 @@ def test_leg_joints_put_hips_on_the_pelvis_and_limit_twist(salsa_dir):
             d = Pb[t, f] - Pb[t, h]  # the thigh twisted about itself
             Q = rotation_about(d / np.linalg.norm(d), np.radians(80.0))
             Rb[t, f] = Q @ Rb[t, f]
-    assert np.abs(_twist(Rb, Pb, LEG_CHAINS[0][1])).min() > 45.0
+    assert np.abs(bone_twist_deg(Rb, Pb, LEG_CHAINS[0][1])).min() > 45.0
     out = [legs(Pb[t].copy(), Rb[t].copy()) for t in range(len(Pb))]
     Po, Ro = np.array([o[0] for o in out]), np.array([o[1] for o in out])
     for chain in LEG_CHAINS:
@@ -748,7 +739,7 @@ def test_leg_joints_put_hips_on_the_pelvis_and_limit_twist(salsa_dir):
         np.testing.assert_allclose(Po[:, chain[0]], P[::7, chain[0]], atol=1e-6)  # back where the pelvis has it
         shape = Po[:, chain[1:]] - Po[:, chain[:1]]
         np.testing.assert_allclose(shape, Pb[:, chain[1:]] - Pb[:, chain[:1]], atol=1e-9)  # the leg's shape kept
-        tw = np.abs(_twist(Ro, Po, chain[1]))
+        tw = np.abs(bone_twist_deg(Ro, Po, chain[1]))
         print(f"\nthigh twist after: {tw.min():.2f}..{tw.max():.2f} deg")
         assert tw.max() <= 45.0 + 1e-6 and np.mean(np.abs(tw - 45.0) < 1e-6) > 0.9
-        np.testing.assert_allclose(np.abs(_twist(Ro, Po, chain[2])), 0.0, atol=1e-6)  # the shin: a hinge
+        np.testing.assert_allclose(np.abs(bone_twist_deg(Ro, Po, chain[2])), 0.0, atol=1e-6)  # the shin: a hinge

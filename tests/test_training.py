@@ -128,7 +128,7 @@ def test_tracker_loss_options_route_gradients_as_documented(clips):
 
 
 def test_mapping_norm_loss_measures_each_point_per_frame():
-    """The mapping's norm loss (``train --map-loss norm``; measured, not shipped)
+    """The mapping's norm loss (``train --map-loss norm``, the shipped recipe)
     takes the Euclidean length of each frame's root position, heading and three
     tracked points per dancer, unsquared, and averages them: an error of (3, 4)
     normalised units in one root position, or of (0, 3, 4) in one tracked

@@ -115,10 +115,9 @@ def main(argv=None):
     ap.add_argument("--map-epochs", type=int, default=None)
     ap.add_argument("--map-hidden", type=int, default=None, help="mapping hidden units (default: the config's)")
     ap.add_argument("--map-wd", type=float, default=None, help="mapping AdamW weight decay (default 1e-4)")
-    ap.add_argument("--map-loss", choices=MappingNet.LOSSES, default="mse",
-                    help="mapping loss on the normalised outputs: mse (shipped), l1, or norm (each frame's "
-                         "position, heading and tracked point per dancer, unsquared; measured on val, not "
-                         "shipped: see models/README.md)")
+    ap.add_argument("--map-loss", choices=MappingNet.LOSSES, default="norm",
+                    help="mapping loss on the normalised outputs: norm (shipped: each frame's position, heading "
+                         "and tracked point per dancer, unsquared), mse (the earlier recipe) or l1")
     ap.add_argument("--map-timewarp", default=None,
                     help="mapping: also train on the clips replayed at these speeds, e.g. 0.9,1.1")
     ap.add_argument("--paper-decoder", action="store_true",
