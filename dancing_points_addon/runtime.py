@@ -320,6 +320,8 @@ class Synthesizer:
         self._leg_joints = LegJoints(self.bone_vectors["follower"]) if self._anchor > 0.0 else None
         # her output's thighs: their twist within ``out_thigh_twist`` (the other leg bones' as her state's)
         out_twist = float(fo.out_thigh_twist) if fo is not None else 0.0
+        if not 0.0 <= out_twist <= 180.0:
+            raise ValueError(f"FollowerOptions.out_thigh_twist must be within 0..180 degrees, not {out_twist!r}")
         self._out_twist = None
         if out_twist > 0.0:
             self._out_twist = np.radians([LEG_TWIST_DEG[0], out_twist] + list(LEG_TWIST_DEG[2:])).tolist()
