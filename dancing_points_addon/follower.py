@@ -94,8 +94,9 @@ class FollowerOptions:
     hip_twist_max: float = 45.0
     hip_twist_rate: float = 0.2
     # degrees: in her output (after her foot lock), each thigh's twist about itself against her pelvis
-    # within this (``pose.LegJoints.twist``; only the bones' roll changes, no joint moves; 0: her
-    # state's limit, ``pose.LEG_TWIST_DEG``). Her state's thighs sit near its 45 degrees (median 30-38
+    # within this, and the bones below it within her state's limits (``pose.LegJoints.twist``,
+    # ``pose.LEG_TWIST_DEG``; only the bones' roll changes, no joint moves; 0: none in her output).
+    # Her state's thighs sit near its 45 degrees (median 30-38
     # on the sample take) where the real follower's twist is 9-10 at the median and 32-33 at the
     # 99th percentile (salsa take 01): the skin at her hips stretched (99.9 % of edges within 1.85 ×
     # rest with the norm-loss mapping; 1.78 at 30 degrees)

@@ -324,7 +324,9 @@ class Synthesizer:
             raise ValueError(f"FollowerOptions.out_thigh_twist must be within 0..180 degrees, not {out_twist!r}")
         self._out_twist = None
         if out_twist > 0.0:
-            self._out_twist = np.radians([LEG_TWIST_DEG[0], out_twist] + list(LEG_TWIST_DEG[2:])).tolist()
+            limits = list(LEG_TWIST_DEG)
+            limits[1] = out_twist  # the thigh (a chain: hip joint, thigh, shin, foot, toes)
+            self._out_twist = np.radians(limits).tolist()
             self._leg_joints = self._leg_joints or LegJoints(self.bone_vectors["follower"])
 
     def scale(self) -> float:

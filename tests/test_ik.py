@@ -703,7 +703,7 @@ def rotation_about(axis, angle):
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
-def test_leg_joints_put_hips_on_the_pelvis_and_limitbone_twist_deg(salsa_dir):
+def test_leg_joints_put_hips_on_the_pelvis_and_limit_twist(salsa_dir):
     """``pose.LegJoints`` on the follower's real legs (take 61_01, 20 s): her
     hip joints already turn with her pelvis and her leg twists are within the
     limits, so nothing moves (to rounding). Her hip joint bones swung 25
