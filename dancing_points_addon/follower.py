@@ -93,6 +93,12 @@ class FollowerOptions:
     hip_twist: float = 0.5
     hip_twist_max: float = 45.0
     hip_twist_rate: float = 0.2
+    # where her hips are turned towards: "net", the hip-heading network's (``nets["hip"]``,
+    # ``hip_heading.onnx``: her hip heading relative to his root from his past 0.5 s, over
+    # ``HIP_BINS`` bins; its circular mean), or "mapping", the mapping's predicted heading of
+    # her head (session 13). Chosen on val: heading 50.2 -> 45.3 degrees, her full-body error,
+    # hands and holds as they were (models/README.md, "Her hips from a hip-heading network")
+    hip_source: str = "net"
     # degrees: in her output (after her foot lock), each thigh's twist about itself against her pelvis
     # within this, and the bones below it within her state's limits (``pose.LegJoints.twist``,
     # ``pose.LEG_TWIST_DEG``; only the bones' roll changes, no joint moves; 0: none in her output).
@@ -276,14 +282,41 @@ class Separation:
         return hx / n * need * 1.05, hz / n * need * 1.05
 
 
+HIP_BINS = 36  # the hip-heading network's bins over the full turn
+
+
+def hip_bin_directions(bins: int = HIP_BINS) -> np.ndarray:
+    """``(bins, 2)``: (cos, sin) of each bin's centre, the angles −π … π (bin k
+    holds the angles from −π + 2πk / bins)."""
+    a = (np.arange(bins) + 0.5) / bins * 2.0 * np.pi - np.pi
+    return np.stack([np.cos(a), np.sin(a)], axis=1)
+
+
+def hip_heading_bins(angles: np.ndarray, bins: int = HIP_BINS) -> np.ndarray:
+    """The bin of each angle (radians, any range) (:func:`hip_bin_directions`)."""
+    return np.floor((np.asarray(angles) + np.pi) / (2.0 * np.pi) * bins).astype(np.int64) % bins
+
+
+_HIP_DIRS = hip_bin_directions()
+
+
+def hip_heading_from_probs(probs, leader_root) -> float:
+    """Her hip heading (radians, as ``hip_heading``) from the hip-heading
+    network's bin probabilities ``(HIP_BINS,)`` (relative to his root) and his
+    root ``(x, z, cos, sin)``: the bins' circular mean, turned into the world."""
+    c, s = (np.asarray(probs, dtype=np.float64).reshape(-1) @ _HIP_DIRS).tolist()
+    return atan2(s, c) + atan2(float(leader_root[3]), float(leader_root[2]))
+
+
 class HipTwist:
     """Her hips (pelvis and legs) turned about the vertical through her pelvis,
     her upper body left as it is (see ``FollowerOptions.hip_twist``). Real
     dancers' hips and heads face apart by 25 degrees on average (the follower's,
     in the salsa val frames); her placement turns her root half way to face
-    the leader, which keeps her holds within reach, and the mapping's own
-    prediction of where she faces is closer to where her hips face (val: 50.9
-    degrees off against her hips' 55.6). Per frame, in place."""
+    the leader, which keeps her holds within reach, and a prediction of where
+    her hips face is closer: the hip-heading network's (``hip_source="net"``;
+    val: 39 degrees off her hips as an estimate) or the mapping's of her head
+    (50.9 degrees off against her hips' 55.6). Per frame, in place."""
 
     _LEGS = [PELVIS] + [int(i) for i in LOWER_BODY]
     # the SPEC joint order has them first: a slice (a view) costs less than an index list

@@ -17,7 +17,7 @@ from .skeleton import LOWER_BODY
 MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
 MODEL_FILES = {"mapping": "mapping.onnx", "contacts": "contacts.onnx", "anchor": "pose_anchor.onnx",
-               "leader": "tracker_leader.onnx",
+               "hip": "hip_heading.onnx", "leader": "tracker_leader.onnx",
                "follower": "tracker_follower.onnx"}
 
 
@@ -125,7 +125,7 @@ def load_nets(model_dir=None, threads: int = 1) -> dict:
 
 def check_models(model_dir=None, threads: int = 1) -> str:
     """Check a models folder once, before any work (the command line and the batch
-    call it at start-up): the five files exist, load in ONNX Runtime, take and
+    call it at start-up): the six files exist, load in ONNX Runtime, take and
     give the sizes of this version's feature layout (``features.layout``) and
     carry the metadata the runtime needs. Returns the folder; a
     :class:`UserError` (one line, naming the folder or file) otherwise."""
@@ -137,7 +137,7 @@ def check_models(model_dir=None, threads: int = 1) -> str:
     d = resolve_model_dir(model_dir)
     want = F.layout()
     sizes = {"mapping": (want["map_in"], None), "contacts": (want["map_in"], None),
-             "anchor": (want["map_in"], None), "leader": (want["track_in"], None),
+             "anchor": (want["map_in"], None), "hip": (want["map_in"], None), "leader": (want["track_in"], None),
              "follower": (want["track_in"], None)}
     for kind, net in nets.items():
         path = os.path.join(d, MODEL_FILES[kind])
@@ -166,4 +166,10 @@ def check_models(model_dir=None, threads: int = 1) -> str:
             n_out = net.session.get_outputs()[0].shape[-1]
             if isinstance(n_out, int) and n_out != 3 * len(LOWER_BODY):
                 raise ModelError(f"{path}: gives {n_out} outputs, the pose anchor needs {3 * len(LOWER_BODY)}")
+        if kind == "hip":
+            from .follower import HIP_BINS
+
+            n_out = net.session.get_outputs()[0].shape[-1]
+            if isinstance(n_out, int) and n_out != HIP_BINS:
+                raise ModelError(f"{path}: gives {n_out} outputs, the hip-heading network needs {HIP_BINS}")
     return d

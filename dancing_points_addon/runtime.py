@@ -19,7 +19,7 @@ from math import atan2, sqrt
 import numpy as np
 
 from . import features as F
-from .follower import FollowerOptions, HandHold, HipTwist, Placement, Separation
+from .follower import FollowerOptions, HandHold, HipTwist, Placement, Separation, hip_heading_from_probs
 from .nets import contact_floor_levels, load_nets
 from .pose import LEG_TWIST_DEG, LegJoints, PoseRecovery, bone_vectors_from_pose
 from .representation import (DEVICE_FROM_HEAD, blend_root, hip_frame, pose_to_world, root_compose, root_from_head,
@@ -256,6 +256,11 @@ class Synthesizer:
             raise ValueError(f"FollowerOptions.anchor must be within 0..1, not {fo.anchor!r}")
         if self._anchor > 0.0 and nets.get("anchor") is None:
             raise ValueError("FollowerOptions.anchor needs the pose anchor network (pose_anchor.onnx)")
+        if fo is not None and fo.hip_twist > 0:
+            if fo.hip_source not in ("net", "mapping"):
+                raise ValueError(f"FollowerOptions.hip_source must be 'net' or 'mapping', not {fo.hip_source!r}")
+            if fo.hip_source == "net" and nets.get("hip") is None:
+                raise ValueError("FollowerOptions.hip_source='net' needs the hip-heading network (hip_heading.onnx)")
         # the follower's arm lengths (shoulder to wrist), for hand holds
         bl = np.linalg.norm(self.bone_vectors["follower"], axis=-1)
         self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
@@ -316,6 +321,8 @@ class Synthesizer:
             from . import ik
             self._arm_limit = ik.ArmTurnLimit(fo.arm_turn)
         self._hip_twist = HipTwist(fo) if fo is not None and fo.hip_twist > 0 else None
+        # her hips turned towards the hip-heading network's heading (else the mapping's)
+        self._hip_net = self._hip_twist is not None and fo.hip_source == "net"
         # her legs kept on the skeleton's joints where the anchor pulls them (``pose.LegJoints``)
         self._leg_joints = LegJoints(self.bone_vectors["follower"]) if self._anchor > 0.0 else None
         # her output's thighs: their twist within ``out_thigh_twist`` (the other leg bones' as her state's)
@@ -469,8 +476,12 @@ class Synthesizer:
             d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
         if self._anchor > 0.0:  # her output's hip joints turn with her pelvis (her state's need not)
             self._leg_joints.hips(*rigid[1])
-        if self._hip_twist is not None:  # her hips towards where the mapping says she faces
-            self._hip_twist.step(*rigid[1], atan2(f_roots[0][3], f_roots[0][2]))
+        if self._hip_twist is not None:  # her hips towards where she faces (the hip network's or the mapping's)
+            if self._hip_net:
+                heading = hip_heading_from_probs(self.nets["hip"](x)[0], root)
+            else:
+                heading = atan2(f_roots[0][3], f_roots[0][2])
+            self._hip_twist.step(*rigid[1], heading)
         lp, lr = self._recover(0, *rigid[0], lc, tracked_s)
         fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
         if self._arm_limit is not None:  # her arms no faster than a real dancer's

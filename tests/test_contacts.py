@@ -81,3 +81,39 @@ def test_pose_anchor_knows_her_legs(test_clips):
            for k, v in (("anchor", p), ("prior", prior))}
     print(f"\nher lower body (cm per joint): anchor {err['anchor']:.2f}, prior {err['prior']:.2f}")
     assert p.shape == y.shape and err["anchor"] <= err["prior"] - 0.5
+
+
+
+def test_hip_heading_network_knows_where_her_hips_face(test_clips, salsa_dir):
+    """The hip-heading network (``models/hip_heading.onnx``): her hip heading
+    relative to his root from his past 0.5 s, over 36 bins. On the test frames the
+    bins' circular mean is closer to her true hip heading than the mapping's
+    prediction of her heading (her head's, the next frame's: what her hips were
+    turned towards before) and than the train frames' own distribution of that
+    turn (what a network that learnt only the prior would say)."""
+    from dancing_points_addon import features as F
+    from dancing_points_addon.follower import HIP_BINS, hip_heading_from_probs
+    from dancing_points_addon.representation import hip_heading
+    from training.data import hip_heading_samples, mapping_inputs
+    from training.dataset import build_clips
+
+    nets = load_nets()
+    prior = hip_heading_samples(build_clips(salsa_dir, "train", mirror_aug=True))[1].mean(0)
+    errs = {"network": [], "mapping": [], "prior": []}
+    for c in test_clips:
+        x = mapping_inputs(c)
+        p = nets["hip"](x)
+        assert p.shape == (len(x), HIP_BINS) and np.allclose(p.sum(1), 1.0, atol=1e-4)
+        true = hip_heading(c.follower.positions)
+        roots = c.leader.roots
+        (_, _), (f_roots, _) = F.decode_mapping(nets["mapping"](x), roots)
+        guesses = {"network": np.array([hip_heading_from_probs(q, r) for q, r in zip(p, roots)]),
+                   "mapping": np.arctan2(f_roots[:, 0, 3], f_roots[:, 0, 2]),
+                   "prior": np.array([hip_heading_from_probs(prior, r) for r in roots])}
+        for k, g in guesses.items():
+            errs[k].append(np.degrees(np.abs(np.angle(np.exp(1j * (g - true))))))
+    err = {k: float(np.concatenate(v).mean()) for k, v in errs.items()}
+    print(f"\nher hip heading, test frames (deg): network {err['network']:.2f}, mapping {err['mapping']:.2f}, "
+          f"train prior {err['prior']:.2f}")
+    assert err["network"] <= err["mapping"] - 1.0
+    assert err["network"] <= err["prior"] - 10.0

@@ -10,13 +10,14 @@ import pytest
 import torch
 
 from dancing_points_addon import features as F
+from dancing_points_addon.follower import HIP_BINS
 from dancing_points_addon.skeleton import LOWER_BODY
 from training.dataset import build_clips, split_range
 from training import train as T
-from training.data import (anchor_samples, contact_samples, default_pose, floor_levels_of, mapping_samples,
-                           tracking_samples)
+from training.data import (anchor_samples, contact_samples, default_pose, floor_levels_of, hip_heading_samples,
+                           mapping_samples, tracking_samples)
 from training.export import FLOAT_COMPUTE_WEIGHTS, export, float_compute, mapping_keep, tracker_keep
-from training.model import ContactNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
+from training.model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +25,7 @@ def clips(salsa_dir):
     return build_clips(salsa_dir, "train", mirror_aug=True)
 
 
-@pytest.mark.parametrize("kind", ["mapping", "contacts", "anchor", "tracker", "vanilla"])
+@pytest.mark.parametrize("kind", ["mapping", "contacts", "anchor", "hip", "tracker", "vanilla"])
 def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     torch.manual_seed(0)
     if kind == "mapping":
@@ -38,12 +39,16 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
         x, y = anchor_samples(clips[:2])
         assert y.shape[1] == 3 * len(LOWER_BODY) and np.abs(y[:, :3:2]).max() < 0.2  # hip joints beside the pelvis
         model, n_in, keep, name = PoseAnchorNet(F.MAP_IN, y.shape[1], 32), F.MAP_IN, slice(None), "pose_anchor"
+    elif kind == "hip":
+        x, y = hip_heading_samples(clips[:2])
+        assert y.shape[1] == HIP_BINS and np.array_equal(y.sum(1), np.ones(len(y)))  # one bin per frame
+        model, n_in, keep, name = HipHeadingNet(F.MAP_IN, HIP_BINS, 32), F.MAP_IN, slice(None), "hip_heading"
     else:
         x, y, _ = tracking_samples(clips[:2], "leader")
         cls = TrackingNet if kind == "tracker" else VanillaTracker
         model, n_in, keep, name = cls(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM), F.TRACK_IN, tracker_keep(), "tracker_leader"
     info = T.train_model(model, x[:512], y[:512], epochs=2, batch=64)
-    assert np.isfinite(info["final"]["bce" if kind == "contacts" else "rec"])
+    assert np.isfinite(info["final"][{"contacts": "bce", "hip": "ce"}.get(kind, "rec")])
     path = str(tmp_path / f"{name}.onnx")
     extra = {"default_pose": default_pose(x)} if kind in ("tracker", "vanilla") else None
     if kind == "contacts":

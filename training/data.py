@@ -82,6 +82,20 @@ def anchor_samples(clips):
     return _duet_frames(clips, lower_body)
 
 
+def hip_heading_samples(clips):
+    """The hip-heading network's samples: the mapping input at every frame of the
+    duet clips and the bin of the follower's hip heading relative to the
+    leader's root heading there, one-hot ``(n, HIP_BINS)``."""
+    from dancing_points_addon.follower import HIP_BINS, hip_heading_bins
+    from dancing_points_addon.representation import hip_heading
+
+    def bins(c):
+        rel = hip_heading(c.follower.positions) - np.arctan2(c.leader.roots[:, 3], c.leader.roots[:, 2])
+        return np.eye(HIP_BINS, dtype=np.float32)[hip_heading_bins(rel)]
+
+    return _duet_frames(clips, bins)
+
+
 def floor_levels_of(clips, role: str) -> list:
     """A dancer's floor level per foot point (m): the median over the duet clips of
     each clip's SPEC §6 floor level (the 5th percentile of the point's height)."""

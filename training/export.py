@@ -1,7 +1,8 @@
 """Export trained networks to ONNX with their feature layout as metadata.
 
 The contact network (``contacts.onnx``) is exported whole, its probabilities
-(sigmoid) in the graph; so is the pose anchor (``pose_anchor.onnx``).
+(sigmoid) in the graph; so are the pose anchor (``pose_anchor.onnx``) and the
+hip-heading network (``hip_heading.onnx``, its bins' probabilities: softmax).
 
 The exported tracker is the inference path only (estimator -> decoder) and
 computes only the outputs the runtime reads: the first future key (the next
@@ -208,13 +209,13 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
 def main(argv=None):
     import argparse
 
-    from .model import ContactNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
+    from .model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
     ap = argparse.ArgumentParser(prog="python -m training.export", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoints", default="cache/checkpoints")
     ap.add_argument("--out", default="models")
-    ap.add_argument("--names", default="mapping,contacts,pose_anchor,tracker_leader,tracker_follower",
+    ap.add_argument("--names", default="mapping,contacts,pose_anchor,hip_heading,tracker_leader,tracker_follower",
                     help="checkpoints to export (e.g. vanilla_leader,pastinput_follower for the ablations)")
     ap.add_argument("--weights", choices=WEIGHTS, default="int8",
                     help="int8: quantised weights, int8 compute (shipped); fp32: the exact float graph")
@@ -244,6 +245,9 @@ def main(argv=None):
             m, n_in, kind = ContactNet(F.MAP_IN, hidden=meta["hidden"], layers=meta["layers"]), F.MAP_IN, "contacts"
         elif name == "pose_anchor":
             m, n_in, kind = PoseAnchorNet(F.MAP_IN, hidden=meta["hidden"], layers=meta["layers"]), F.MAP_IN, "anchor"
+        elif name == "hip_heading":
+            m, n_in, kind = HipHeadingNet(F.MAP_IN, hidden=meta["hidden"], layers=meta["layers"]), F.MAP_IN, \
+                "hip_heading"
         else:
             role = meta.get("role") or name.rsplit("_", 1)[1]
             cls = VanillaTracker if meta.get("ablation") == "a" else TrackingNet

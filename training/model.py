@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from dancing_points_addon import features as F
+from dancing_points_addon.follower import HIP_BINS
 from dancing_points_addon.skeleton import LOWER_BODY
 
 
@@ -240,6 +241,28 @@ class ContactNet(nn.Module):
 
     def truncated(self, keep=None) -> "ContactNet":
         return self  # every output is used
+
+
+class HipHeadingNet(ContactNet):
+    """The follower's hip heading (issue 13): the mapping network's input (the
+    leader's past 0.5 s of three points) -> the probabilities of her hip heading
+    *relative to his root's heading* at the current frame over
+    ``follower.HIP_BINS`` bins of the full turn, ``(B, HIP_BINS)`` (softmax in the
+    graph). Cross-entropy on one-hot targets. The runtime turns her hips towards
+    the bins' circular mean (``FollowerOptions.hip_source``): a heading read from
+    bins copes with the spins, where a regressed one averages a turn away."""
+
+    def __init__(self, n_in, n_out=HIP_BINS, hidden=512, layers=3, noise=0.05, dropout=0.2):
+        super().__init__(n_in, n_out, hidden, layers, noise, dropout)
+
+    def loss(self, x, y):
+        xn = self.nx.norm(x)
+        if self.training and self.noise > 0:
+            xn = xn + self.noise * torch.randn_like(xn)
+        return {"ce": nn.functional.cross_entropy(self.net(xn), y)}
+
+    def forward(self, x):
+        return torch.softmax(self.net(self.nx.norm(x)), dim=-1)
 
 
 class TrackingNet(_Net):

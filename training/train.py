@@ -23,12 +23,13 @@ import numpy as np
 import torch
 
 from dancing_points_addon import features as F
+from dancing_points_addon.follower import HIP_BINS
 from training.dataset import load_clips
 
-from .data import (anchor_samples, contact_samples, default_pose, floor_levels_of, mapping_samples, rollout_states,
-                   time_warp, tracking_samples)
+from .data import (anchor_samples, contact_samples, default_pose, floor_levels_of, hip_heading_samples,
+                   mapping_samples, rollout_states, time_warp, tracking_samples)
 from .export import export
-from .model import ContactNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
+from .model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
 
 def save_checkpoint(model, path, meta):
@@ -85,11 +86,15 @@ CONFIGS = {
              "pose_noise": {"leader": 0.3, "follower": 0.0}, "runtime_keys": False, "rollout_steps": 20,
              "rollout_epochs": 0,
              "contacts": {"hidden": 256, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2},
-             "anchor": {"hidden": 512, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2}},
+             "anchor": {"hidden": 512, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2},
+             # her hip heading over bins (chosen on val: open-loop 39-41 degrees off her hips against
+             # 42-43 for 256 units or 30 epochs)
+             "hip": {"hidden": 512, "layers": 3, "epochs": 60, "noise": 0.05, "dropout": 0.2}},
     "tiny": {"map_hidden": 32, "map_epochs": 1, "track_hidden": 32, "track_epochs": 1,
              "pose_noise": 0.3, "runtime_keys": True, "rollout_steps": 4, "rollout_epochs": 1,
              "contacts": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2},
-             "anchor": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2}},
+             "anchor": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2},
+             "hip": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2}},
 }
 
 
@@ -101,7 +106,7 @@ def main(argv=None):
     ap.add_argument("--config", choices=sorted(CONFIGS), default="full")
     ap.add_argument("--ablations", default=None, help="also train ablations (a), (b) into this folder")
     ap.add_argument("--only", default=None,
-                    help="comma list of what to train: mapping, contacts, anchor, leader, follower (the shipped models)"
+                    help="comma list of what to train: mapping, contacts, anchor, hip, leader, follower (the shipped models)"
                          " and, with --ablations, vanilla, pastinput (default: all)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: all cores)")
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto")
@@ -165,8 +170,8 @@ def main(argv=None):
     t_all = time.time()
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
-    only = set(args.only.split(",")) if args.only else {"mapping", "contacts", "anchor", "leader", "follower",
-                                                        "vanilla", "pastinput"}
+    only = set(args.only.split(",")) if args.only else {"mapping", "contacts", "anchor", "hip", "leader",
+                                                        "follower", "vanilla", "pastinput"}
     # the recipe options given on the command line (paths and machine settings aside)
     overrides = {k: v for k, v in vars(args).items() if v != ap.get_default(k)
                  and k not in ("data", "out", "cache", "ablations", "only", "threads", "device", "split", "config")}
@@ -218,6 +223,10 @@ def main(argv=None):
     if "anchor" in only:
         input_net("anchor", PoseAnchorNet, anchor_samples, "anchor", "pose_anchor",
                   {"outputs": "the follower's lower body (skeleton.LOWER_BODY, x y z each) in her hip frame"})
+    if "hip" in only:
+        input_net("hip", HipHeadingNet, hip_heading_samples, "hip_heading", "hip_heading",
+                  {"outputs": f"the follower's hip heading relative to the leader's root heading: the probabilities "
+                              f"of {HIP_BINS} bins, bin k from -pi + 2 pi k / {HIP_BINS}", "bins": HIP_BINS})
     mapping_fn = None
     if cfg["runtime_keys"] and only & {"leader", "follower", "vanilla"}:
         from dancing_points_addon.nets import OnnxNet
@@ -280,7 +289,7 @@ def main(argv=None):
             tracker(TrackingNet, role, f"pastinput_{role}", os.path.join(args.ablations, f"pastinput_{role}.onnx"),
                     past_input=True, extra={"ablation": "b", "input": "past three-point trajectory"})
     report["seconds_total"] = time.time() - t_all  # this run
-    report_dir = args.out if only & {"mapping", "contacts", "anchor", "leader", "follower"} else args.ablations
+    report_dir = args.out if only & {"mapping", "contacts", "anchor", "hip", "leader", "follower"} else args.ablations
     path = os.path.join(report_dir, "training_report.json")
     if report["models"]:
         if os.path.exists(path):  # a partial run (--only, --roles) keeps the other models' entries
