@@ -234,7 +234,11 @@ class ContactNet(nn.Module):
         xn = self.nx.norm(x)
         if self.training and self.noise > 0:
             xn = xn + self.noise * torch.randn_like(xn)
-        return {"bce": nn.functional.binary_cross_entropy_with_logits(self.net(xn), y)}
+        return self._criterion(self.net(xn), y)
+
+    @staticmethod
+    def _criterion(logits, y):
+        return {"bce": nn.functional.binary_cross_entropy_with_logits(logits, y)}
 
     def forward(self, x):
         return torch.sigmoid(self.net(self.nx.norm(x)))
@@ -255,11 +259,9 @@ class HipHeadingNet(ContactNet):
     def __init__(self, n_in, n_out=HIP_BINS, hidden=512, layers=3, noise=0.05, dropout=0.2):
         super().__init__(n_in, n_out, hidden, layers, noise, dropout)
 
-    def loss(self, x, y):
-        xn = self.nx.norm(x)
-        if self.training and self.noise > 0:
-            xn = xn + self.noise * torch.randn_like(xn)
-        return {"ce": nn.functional.cross_entropy(self.net(xn), y)}
+    @staticmethod
+    def _criterion(logits, y):
+        return {"ce": nn.functional.cross_entropy(logits, y)}
 
     def forward(self, x):
         return torch.softmax(self.net(self.nx.norm(x)), dim=-1)
