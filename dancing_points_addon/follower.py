@@ -96,7 +96,7 @@ class FollowerOptions:
     # where her hips are turned towards: "net", the hip-heading network's (``nets["hip"]``,
     # ``hip_heading.onnx``: her hip heading relative to his root from his past 0.5 s, over
     # ``HIP_BINS`` bins; its circular mean), or "mapping", the mapping's predicted heading of
-    # her head (session 13). Chosen on val: heading 50.2 -> 45.3 degrees, her full-body error,
+    # her head (session 13). Chosen on val (four mapping seeds): heading 50.2 -> 46.1 degrees, her full-body error,
     # hands and holds as they were (models/README.md, "Her hips from a hip-heading network")
     hip_source: str = "net"
     # degrees: in her output (after her foot lock), each thigh's twist about itself against her pelvis

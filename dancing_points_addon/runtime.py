@@ -256,11 +256,10 @@ class Synthesizer:
             raise ValueError(f"FollowerOptions.anchor must be within 0..1, not {fo.anchor!r}")
         if self._anchor > 0.0 and nets.get("anchor") is None:
             raise ValueError("FollowerOptions.anchor needs the pose anchor network (pose_anchor.onnx)")
-        if fo is not None and fo.hip_twist > 0:
-            if fo.hip_source not in ("net", "mapping"):
-                raise ValueError(f"FollowerOptions.hip_source must be 'net' or 'mapping', not {fo.hip_source!r}")
-            if fo.hip_source == "net" and nets.get("hip") is None:
-                raise ValueError("FollowerOptions.hip_source='net' needs the hip-heading network (hip_heading.onnx)")
+        if fo is not None and fo.hip_source not in ("net", "mapping"):
+            raise ValueError(f"FollowerOptions.hip_source must be 'net' or 'mapping', not {fo.hip_source!r}")
+        if fo is not None and fo.hip_twist > 0 and fo.hip_source == "net" and nets.get("hip") is None:
+            raise ValueError("FollowerOptions.hip_source='net' needs the hip-heading network (hip_heading.onnx)")
         # the follower's arm lengths (shoulder to wrist), for hand holds
         bl = np.linalg.norm(self.bone_vectors["follower"], axis=-1)
         self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]

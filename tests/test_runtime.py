@@ -617,5 +617,6 @@ def test_her_hips_turn_where_the_hip_network_says(test_duets):
     net, mapping = aggregate(errs["network"]), aggregate(errs["mapping"])
     print(f"\nher hip heading error (deg), 13 test takes: hip network {net:.2f}, mapping {mapping:.2f}")
     assert net <= mapping - 1.0
-    with pytest.raises(ValueError, match="hip_source"):
-        Synthesizer(follower=FollowerOptions(hip_source="head"))
+    for kw in ({}, {"hip_twist": 0.0}):  # a wrong source is refused even with the twist off
+        with pytest.raises(ValueError, match="hip_source"):
+            Synthesizer(follower=FollowerOptions(hip_source="head", **kw))
