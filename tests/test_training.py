@@ -155,6 +155,30 @@ def test_mapping_norm_loss_measures_each_point_per_frame():
         MappingNet(F.MAP_IN, 30, 8, loss="norm")
 
 
+def test_mapping_loss_weighs_dancers_and_groups():
+    """Per-sample weights of the mapping's loss (``train --map-reverse``: the clips
+    played backwards count for her root position only): per dancer ``(B, 2)``
+    or per dancer and group ``(B, 2, 5)``; a weight of 0 leaves that part out,
+    and the mean is over what counts. All ones is the unweighted loss."""
+    torch.manual_seed(0)
+    m = MappingNet(F.MAP_IN, F.MAP_OUT, 8, loss="norm")
+    pred, yn = torch.randn(4, F.MAP_OUT), torch.randn(4, F.MAP_OUT)
+    assert m.map_loss(pred, yn, torch.ones(4, 2)).item() == pytest.approx(m.map_loss(pred, yn).item(), rel=1e-6)
+    d = torch.zeros(1, F.MAP_OUT)
+    d[0, [F.FRAME_DIM * 7 + 0, F.FRAME_DIM * 7 + 1]] = torch.tensor([3.0, 4.0])  # her root position, frame 4
+    zero = torch.zeros(1, F.MAP_OUT)
+    w = torch.tensor(T.REVERSE_WEIGHTS["placement"], dtype=torch.float32)[None]
+    assert m.map_loss(d, zero, w).item() == pytest.approx(5.0 / F.FUTURE, abs=1e-5)  # one of her 30 positions
+    d[0, F.FRAME_DIM * 6 + 5] = 10.0  # his first point, frame 4: left out
+    d[0, F.FRAME_DIM * 7 + 2] = 10.0  # her heading: left out
+    assert m.map_loss(d, zero, w).item() == pytest.approx(5.0 / F.FUTURE, abs=1e-5)
+    assert m.map_loss(d, zero, torch.tensor([[0.0, 1.0]])).item() == pytest.approx(
+        (5.0 + 10.0) / (F.FUTURE * 5), abs=1e-5)  # all her groups: her position (5) and heading (10) count
+    mse = MappingNet(F.MAP_IN, F.MAP_OUT, 8, loss="mse")
+    assert mse.map_loss(pred, yn, torch.ones(4, 2, 5)).item() == pytest.approx(mse.map_loss(pred, yn).item(), rel=1e-6)
+    assert set(T.REVERSE_WEIGHTS) == {"placement", "follower", "both", "none"}
+
+
 def test_training_samples_stay_inside_train_frames(salsa_dir, clips):
     """Every sample's future window ends inside its clip, and each clip holds exactly
     the train frames of its take, so no test frame reaches training or normalisation."""

@@ -226,6 +226,20 @@ def time_warp(clips, rates):
             for c in clips if c.follower is not None for r in rates]
 
 
+def time_reverse(clips):
+    """Duet clips played backwards (root frames and contacts derived again). For
+    the mapping network: a take's start, where the couple walks together from
+    about 2 m, played backwards is a couple separating, which no train frame
+    shows otherwise (the takes' endings are test frames); and every figure
+    played backwards is a lead and its answer all the same."""
+    from training.dataset import Clip, Dancer
+
+    def back(d):
+        return Dancer.from_arrays(d.positions[::-1].copy(), d.rotations[::-1].copy(), F.FPS)
+
+    return [Clip(f"{c.name}r", back(c.leader), back(c.follower), c.mirrored) for c in clips if c.follower is not None]
+
+
 def default_pose(x: np.ndarray, where=None, clips=None) -> list:
     """Pose features of the train sample nearest the mean pose (normalised): the
     runtime's start-up pose, placed under the head. Its skeleton becomes the

@@ -116,12 +116,14 @@ class _Net(nn.Module):
         noise = torch.randn(x.shape[0], self.pose_dim, device=x.device) * unit * scale
         return torch.cat([x[:, :self.pose_dim] + noise, x[:, self.pose_dim:]], dim=1)
 
-    def loss(self, x, y):
+    def loss(self, x, y, w=None):
+        """``w``: per-sample weights for the networks that take them (the mapping's,
+        per dancer); None: every sample and output counts alike."""
         x = self.corrupt_pose(x)
         xn, yn = self.nx.norm(x), self.ny.norm(y - self._base(x))
         if self.training and self.noise > 0:
             xn = xn + self.noise * torch.randn_like(xn)
-        return self._loss(xn, yn)
+        return self._loss(xn, yn) if w is None else self._loss(xn, yn, w)
 
     def forward(self, x):
         return self.ny.denorm(self._predict(self.nx.norm(x))) + self._base(x)
@@ -167,20 +169,30 @@ class MappingNet(_Net):
         self.loss_kind = loss
         self.net = mlp(n_in, n_out, hidden, layers, dropout)
 
-    def _loss(self, xn, yn):
-        return {"rec": self.map_loss(self.net(xn), yn)}
+    def _loss(self, xn, yn, w=None):
+        return {"rec": self.map_loss(self.net(xn), yn, w)}
 
-    def map_loss(self, pred, yn):
-        """The loss of normalised predictions ``pred`` against targets ``yn``."""
-        if self.loss_kind == "l1":
-            return (pred - yn).abs().mean()
+    # groups of one frame of one dancer: root position (x, z), heading (cos, sin), three points
+    GROUPS = [(0, 2), (2, 4)] + [(F.ROOT_DIM + 3 * k, F.ROOT_DIM + 3 * k + 3) for k in range(3)]
+
+    def map_loss(self, pred, yn, w=None):
+        """The loss of normalised predictions ``pred`` against targets ``yn``;
+        ``w``: each sample's weights of the leader's and of the follower's outputs
+        (frames alternate leader, follower), ``(B, 2)``, or per group of
+        :data:`GROUPS`, ``(B, 2, 5)``; None: all alike."""
+        frames = self.n_out // F.FRAME_DIM
+        d = (pred - yn).view(-1, frames, F.FRAME_DIM)
+        if w is not None:  # (B, frames, groups): each frame-dancer-group's weight
+            w = w[:, :, None].expand(-1, -1, len(self.GROUPS)) if w.dim() == 2 else w
+            w = w[:, torch.arange(frames, device=w.device) % 2]
         if self.loss_kind == "norm":
-            d = (pred - yn).view(-1, self.n_out // F.FRAME_DIM, F.FRAME_DIM)
-            # groups of one frame of one dancer: root position (x, z), heading (cos, sin), three points
-            groups = [(0, 2), (2, 4)] + [(F.ROOT_DIM + 3 * k, F.ROOT_DIM + 3 * k + 3) for k in range(3)]
-            norms = [((d[..., a:b] ** 2).sum(-1) + 1e-12).sqrt() for a, b in groups]
-            return torch.stack(norms, -1).mean()
-        return self._rec(pred, yn)
+            norms = torch.stack([((d[..., a:b] ** 2).sum(-1) + 1e-12).sqrt() for a, b in self.GROUPS], -1)
+            return norms.mean() if w is None else (norms * w).sum() / w.sum().clamp_min(1e-12)
+        if w is None:
+            return (pred - yn).abs().mean() if self.loss_kind == "l1" else self._rec(pred, yn)
+        err = d.abs() if self.loss_kind == "l1" else d ** 2
+        we = torch.cat([w[..., g:g + 1].expand(-1, -1, b - a) for g, (a, b) in enumerate(self.GROUPS)], -1)
+        return (err * we).sum() / we.sum().clamp_min(1e-12)
 
     def _predict(self, xn):
         return self.net(xn)

@@ -27,7 +27,7 @@ from dancing_points_addon.follower import HIP_BINS
 from training.dataset import load_clips
 
 from .data import (anchor_samples, contact_samples, default_pose, floor_levels_of, hip_heading_samples,
-                   mapping_samples, rollout_states, time_warp, tracking_samples)
+                   mapping_samples, rollout_states, time_reverse, time_warp, tracking_samples)
 from .export import export
 from .model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
@@ -38,9 +38,12 @@ def save_checkpoint(model, path, meta):
 
 
 def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None, seed=0, refit=True,
-                weight_decay=1e-4):
+                weight_decay=1e-4, w=None):
+    """``w``: per-sample loss weights passed to ``model.loss`` (the mapping's per
+    dancer, ``(n, 2)``), or None."""
     torch.manual_seed(seed)
     xt, yt = torch.from_numpy(x), torch.from_numpy(y)
+    wt = None if w is None else torch.from_numpy(np.asarray(w, dtype=np.float32)).to(device)
     if refit:  # normalisation statistics of the (train split) samples
         model.fit_normalizers(xt, yt)
     model.to(device)
@@ -57,7 +60,7 @@ def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None,
         tot, n = {}, 0
         for i in range(0, len(xt) - batch + 1, batch):
             idx = perm[i:i + batch]
-            losses = model.loss(xt[idx], yt[idx])
+            losses = model.loss(xt[idx], yt[idx]) if wt is None else model.loss(xt[idx], yt[idx], wt[idx])
             loss = sum(losses.values())
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -75,6 +78,11 @@ def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None,
     return {"seconds": time.time() - t0, "final": hist[-1] if hist else {}, "epochs": epochs,
             "samples": int(len(xt))}
 
+
+# the mapping's loss weights, per dancer (leader, follower) and output group (root position,
+# heading, three points: ``MappingNet.GROUPS``), on the clips played backwards (``--map-reverse``)
+REVERSE_WEIGHTS = {"placement": [[0, 0, 0, 0, 0], [1, 0, 0, 0, 0]], "follower": [[0] * 5, [1] * 5],
+                   "both": [[1] * 5, [1] * 5], "none": [[0] * 5, [0] * 5]}
 
 CONFIGS = {
     # hidden units, epochs
@@ -123,6 +131,10 @@ def main(argv=None):
     ap.add_argument("--map-loss", choices=MappingNet.LOSSES, default="norm",
                     help="mapping loss on the normalised outputs: norm (shipped: each frame's position, heading "
                          "and tracked point per dancer, unsquared), mse (the earlier recipe) or l1")
+    ap.add_argument("--map-reverse", choices=tuple(REVERSE_WEIGHTS), default="placement",
+                    help="mapping: also train on the clips played backwards, their loss on the follower's root "
+                         "positions only (placement, shipped), on all the follower's outputs (follower), on both "
+                         "dancers' (both), or not at all (none)")
     ap.add_argument("--map-timewarp", default=None,
                     help="mapping: also train on the clips replayed at these speeds, e.g. 0.9,1.1")
     ap.add_argument("--paper-decoder", action="store_true",
@@ -186,6 +198,12 @@ def main(argv=None):
         if args.map_timewarp:
             map_clips = clips + time_warp(clips, [float(r) for r in args.map_timewarp.split(",")])
         x, y = mapping_samples(map_clips)
+        w = None
+        if args.map_reverse != "none":  # the clips played backwards, their outputs' groups weighted 0 or 1
+            xr, yr = mapping_samples(time_reverse(map_clips))
+            w = np.ones((len(x) + len(xr), 2, len(MappingNet.GROUPS)), dtype=np.float32)
+            w[len(x):] = REVERSE_WEIGHTS[args.map_reverse]
+            x, y = np.concatenate([x, xr]), np.concatenate([y, yr])
         log(f"mapping: {x.shape} -> {y.shape}")
         noise = 0.1 if args.map_noise is None else args.map_noise
         dropout = 0.1 if args.map_dropout is None else args.map_dropout
@@ -193,8 +211,9 @@ def main(argv=None):
         hidden = args.map_hidden or cfg["map_hidden"]
         wd = 1e-4 if args.map_wd is None else args.map_wd
         m = MappingNet(F.MAP_IN, F.MAP_OUT, hidden, noise=noise, dropout=dropout, loss=args.map_loss)
-        info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed, weight_decay=wd)
-        info.update(noise=noise, dropout=dropout, weight_decay=wd, timewarp=args.map_timewarp, loss=args.map_loss)
+        info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed, weight_decay=wd, w=w)
+        info.update(noise=noise, dropout=dropout, weight_decay=wd, timewarp=args.map_timewarp, loss=args.map_loss,
+                    reverse=args.map_reverse)
         export(m, "mapping", os.path.join(args.out, "mapping.onnx"), F.MAP_IN,
                {"hidden": hidden, "train": info, **split_meta}, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": hidden, **split_meta})
