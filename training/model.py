@@ -180,6 +180,8 @@ class MappingNet(_Net):
         ``w``: each sample's weights of the leader's and of the follower's outputs
         (frames alternate leader, follower), ``(B, 2)``, or per group of
         :data:`GROUPS`, ``(B, 2, 5)``; None: all alike."""
+        if w is None and self.loss_kind != "norm":  # (any output size: the pose anchor's too)
+            return (pred - yn).abs().mean() if self.loss_kind == "l1" else self._rec(pred, yn)
         frames = self.n_out // F.FRAME_DIM
         d = (pred - yn).view(-1, frames, F.FRAME_DIM)
         if w is not None:  # (B, frames, groups): each frame-dancer-group's weight
@@ -188,8 +190,6 @@ class MappingNet(_Net):
         if self.loss_kind == "norm":
             norms = torch.stack([((d[..., a:b] ** 2).sum(-1) + 1e-12).sqrt() for a, b in self.GROUPS], -1)
             return norms.mean() if w is None else (norms * w).sum() / w.sum().clamp_min(1e-12)
-        if w is None:
-            return (pred - yn).abs().mean() if self.loss_kind == "l1" else self._rec(pred, yn)
         err = d.abs() if self.loss_kind == "l1" else d ** 2
         we = torch.cat([w[..., g:g + 1].expand(-1, -1, b - a) for g, (a, b) in enumerate(self.GROUPS)], -1)
         return (err * we).sum() / we.sum().clamp_min(1e-12)

@@ -131,10 +131,10 @@ def main(argv=None):
     ap.add_argument("--map-loss", choices=MappingNet.LOSSES, default="norm",
                     help="mapping loss on the normalised outputs: norm (shipped: each frame's position, heading "
                          "and tracked point per dancer, unsquared), mse (the earlier recipe) or l1")
-    ap.add_argument("--map-reverse", choices=tuple(REVERSE_WEIGHTS), default="placement",
+    ap.add_argument("--map-reverse", choices=tuple(REVERSE_WEIGHTS), default="none",
                     help="mapping: also train on the clips played backwards, their loss on the follower's root "
-                         "positions only (placement, shipped), on all the follower's outputs (follower), on both "
-                         "dancers' (both), or not at all (none)")
+                         "positions only (placement), on all the follower's outputs (follower), on both dancers' "
+                         "(both), or not at all (none, shipped: see models/README.md)")
     ap.add_argument("--map-timewarp", default=None,
                     help="mapping: also train on the clips replayed at these speeds, e.g. 0.9,1.1")
     ap.add_argument("--paper-decoder", action="store_true",
