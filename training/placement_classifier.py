@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from dancing_points_addon import features as F
-from dancing_points_addon.follower import FollowerOptions, _compose
+from dancing_points_addon.follower import FollowerOptions, _compose, hip_bin_directions, hip_heading_bins
 from dancing_points_addon.nets import load_nets
 from dancing_points_addon.representation import root_relative, to_local, to_world
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
@@ -82,12 +82,11 @@ def _centres():
 
 
 def _bin_dirs():
-    a = (np.arange(BINS) + 0.5) / BINS * 2 * np.pi - np.pi
-    return np.stack([np.cos(a), np.sin(a)], 1)
+    return hip_bin_directions(BINS)
 
 
 def _bins(angle):
-    return np.floor((angle + np.pi) / (2 * np.pi) * BINS).astype(np.int64) % BINS
+    return hip_heading_bins(angle, BINS)
 
 
 def samples(clips):
