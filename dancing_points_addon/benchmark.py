@@ -87,8 +87,9 @@ def onnx_weights(path):
 
 
 class _Floor:
-    """The bare mat-vec products of all six networks' weights (the mapping, the
-    contact network, the pose anchor and the hip-heading network once, each tracker once), timed one duet
+    """The bare mat-vec products of all seven networks' weights (the mapping, the
+    placement network, the contact network, the pose anchor and the hip-heading network once, each
+    tracker once), timed one duet
     frame at a time."""
 
     def __init__(self, model_dir):

@@ -97,6 +97,16 @@ def mapping_target(lead_root_t, lead_roots, lead_tracked, fol_roots, fol_tracked
     return np.concatenate([a, b], axis=-1).reshape(len(lead_root_t), -1)
 
 
+def splice_follower_roots(y: np.ndarray, roots_from: np.ndarray) -> np.ndarray:
+    """The mapping output ``y`` ``(B, MAP_OUT)`` with the follower's predicted roots
+    (position and heading, every future frame) taken from ``roots_from``, an
+    output of the same layout (the placement network's); a new array."""
+    out = np.array(y, copy=True)
+    o = out.reshape(len(out), FUTURE, 2, FRAME_DIM)
+    o[:, :, 1, FRAME_ROOT] = np.asarray(roots_from).reshape(o.shape)[:, :, 1, FRAME_ROOT]
+    return out
+
+
 def decode_mapping(y: np.ndarray, lead_root_t: np.ndarray):
     """``(B, MAP_OUT)`` -> per dancer (leader, follower): world roots ``(B, FUTURE, 4)``
     and tracked points in their own roots ``(B, FUTURE, 3, 3)``."""

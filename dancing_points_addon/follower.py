@@ -99,6 +99,13 @@ class FollowerOptions:
     # her head (session 13). Chosen on val (four mapping seeds): heading 50.2 -> 46.1 degrees, her full-body error,
     # hands and holds as they were (models/README.md, "Her hips from a hip-heading network")
     hip_source: str = "net"
+    # where her placement steers to: "net", the placement network's predicted roots of her
+    # (``nets["placement"]``, ``placement.onnx``: the mapping's network and recipe, trained also on
+    # the clips played backwards, where a take's start is a couple parting, with the loss on her
+    # outputs; her position and heading from it, all else from the mapping), or "mapping", the
+    # mapping's (sessions 1-15). Chosen on val (four seeds each): her full-body error 34.51 -> 32.40 cm,
+    # heading 46.1 -> 45.9, hand 11.58 -> 10.00 (models/README.md, "Her placement from a placement network")
+    placement_source: str = "net"
     # degrees: in her output (after her foot lock), each thigh's twist about itself against her pelvis
     # within this, and the bones below it within her state's limits (``pose.LegJoints.twist``,
     # ``pose.LEG_TWIST_DEG``; only the bones' roll changes, no joint moves; 0: none in her output).

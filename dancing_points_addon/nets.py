@@ -16,7 +16,7 @@ from .skeleton import LOWER_BODY
 
 MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
-MODEL_FILES = {"mapping": "mapping.onnx", "contacts": "contacts.onnx", "anchor": "pose_anchor.onnx",
+MODEL_FILES = {"mapping": "mapping.onnx", "placement": "placement.onnx", "contacts": "contacts.onnx", "anchor": "pose_anchor.onnx",
                "hip": "hip_heading.onnx", "leader": "tracker_leader.onnx",
                "follower": "tracker_follower.onnx"}
 
@@ -125,7 +125,7 @@ def load_nets(model_dir=None, threads: int = 1) -> dict:
 
 def check_models(model_dir=None, threads: int = 1) -> str:
     """Check a models folder once, before any work (the command line and the batch
-    call it at start-up): the six files exist, load in ONNX Runtime, take and
+    call it at start-up): the seven files exist, load in ONNX Runtime, take and
     give the sizes of this version's feature layout (``features.layout``) and
     carry the metadata the runtime needs. Returns the folder; a
     :class:`UserError` (one line, naming the folder or file) otherwise."""
@@ -136,7 +136,7 @@ def check_models(model_dir=None, threads: int = 1) -> str:
     nets = load_nets(model_dir, threads)
     d = resolve_model_dir(model_dir)
     want = F.layout()
-    sizes = {"mapping": (want["map_in"], None), "contacts": (want["map_in"], None),
+    sizes = {"mapping": (want["map_in"], None), "placement": (want["map_in"], None), "contacts": (want["map_in"], None),
              "anchor": (want["map_in"], None), "hip": (want["map_in"], None), "leader": (want["track_in"], None),
              "follower": (want["track_in"], None)}
     for kind, net in nets.items():
@@ -162,6 +162,10 @@ def check_models(model_dir=None, threads: int = 1) -> str:
                 raise ModelError(f"{path}: gives {n_out} outputs, the contact network needs 8")
             if contact_floor_levels(net.meta) is None:
                 raise ModelError(f"{path}: no floor_levels (four numbers per dancer) in its metadata")
+        if kind in ("mapping", "placement"):
+            n_out = net.session.get_outputs()[0].shape[-1]
+            if isinstance(n_out, int) and n_out != want["map_out"]:
+                raise ModelError(f"{path}: gives {n_out} outputs, the {kind} network needs {want['map_out']}")
         if kind == "anchor":
             n_out = net.session.get_outputs()[0].shape[-1]
             if isinstance(n_out, int) and n_out != 3 * len(LOWER_BODY):

@@ -260,6 +260,13 @@ class Synthesizer:
             raise ValueError(f"FollowerOptions.hip_source must be 'net' or 'mapping', not {fo.hip_source!r}")
         if fo is not None and fo.hip_twist > 0 and fo.hip_source == "net" and nets.get("hip") is None:
             raise ValueError("FollowerOptions.hip_source='net' needs the hip-heading network (hip_heading.onnx)")
+        if fo is not None and fo.placement_source not in ("net", "mapping"):
+            raise ValueError(f"FollowerOptions.placement_source must be 'net' or 'mapping', not "
+                             f"{fo.placement_source!r}")
+        # her roots (where she stands and faces) from the placement network (else the mapping's)
+        self._placement_net = fo is not None and fo.placement_source == "net"
+        if self._placement_net and nets.get("placement") is None:
+            raise ValueError("FollowerOptions.placement_source='net' needs the placement network (placement.onnx)")
         # the follower's arm lengths (shoulder to wrist), for hand holds
         bl = np.linalg.norm(self.bone_vectors["follower"], axis=-1)
         self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
@@ -426,6 +433,8 @@ class Synthesizer:
             self.hist_tracked[-1] = tracked_s
         x = F.mapping_input(self.hist_roots[None], self.hist_tracked[None])
         y = self.nets["mapping"](x)
+        if self._placement_net:  # her predicted roots from the placement network
+            y = F.splice_follower_roots(y, self.nets["placement"](x))
         if self._net_steps:
             p = self.nets["contacts"](x)[0].astype(np.float64)
             b = self.follower_options.contact_smooth

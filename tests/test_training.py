@@ -15,7 +15,7 @@ from dancing_points_addon.skeleton import LOWER_BODY
 from training.dataset import build_clips, split_range
 from training import train as T
 from training.data import (anchor_samples, contact_samples, default_pose, floor_levels_of, hip_heading_samples,
-                           mapping_samples, tracking_samples)
+                           mapping_samples, time_reverse, tracking_samples)
 from training.export import FLOAT_COMPUTE_WEIGHTS, export, float_compute, mapping_keep, tracker_keep
 from training.model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
@@ -25,7 +25,7 @@ def clips(salsa_dir):
     return build_clips(salsa_dir, "train", mirror_aug=True)
 
 
-@pytest.mark.parametrize("kind", ["mapping", "contacts", "anchor", "hip", "tracker", "vanilla"])
+@pytest.mark.parametrize("kind", ["mapping", "placement", "contacts", "anchor", "hip", "tracker", "vanilla"])
 def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     torch.manual_seed(0)
     if kind == "mapping":
@@ -43,11 +43,21 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
         x, y = hip_heading_samples(clips[:2])
         assert y.shape[1] == HIP_BINS and np.array_equal(y.sum(1), np.ones(len(y)))  # one bin per frame
         model, n_in, keep, name = HipHeadingNet(F.MAP_IN, HIP_BINS, 32), F.MAP_IN, slice(None), "hip_heading"
+    elif kind == "placement":  # the mapping's network, also on the clips played backwards (her outputs' loss)
+        x, y = mapping_samples(clips[:2])
+        xr, yr = mapping_samples(time_reverse(clips[:2]))
+        w = np.ones((512, 2, len(MappingNet.GROUPS)), dtype=np.float32)
+        w[256:] = T.REVERSE_WEIGHTS["follower"]
+        x, y = np.concatenate([x[:256], xr[:256]]), np.concatenate([y[:256], yr[:256]])
+        model, n_in, keep, name = MappingNet(F.MAP_IN, F.MAP_OUT, 32), F.MAP_IN, mapping_keep(), "placement"
     else:
         x, y, _ = tracking_samples(clips[:2], "leader")
         cls = TrackingNet if kind == "tracker" else VanillaTracker
         model, n_in, keep, name = cls(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM), F.TRACK_IN, tracker_keep(), "tracker_leader"
-    info = T.train_model(model, x[:512], y[:512], epochs=2, batch=64)
+    if kind == "placement":
+        info = T.train_model(model, x, y, epochs=2, batch=64, w=w)
+    else:
+        info = T.train_model(model, x[:512], y[:512], epochs=2, batch=64)
     assert np.isfinite(info["final"][{"contacts": "bce", "hip": "ce"}.get(kind, "rec")])
     path = str(tmp_path / f"{name}.onnx")
     extra = {"default_pose": default_pose(x)} if kind in ("tracker", "vanilla") else None
@@ -60,6 +70,8 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     meta = {p.key: p.value for p in m.metadata_props}
     assert json.loads(meta["layout"])["track_in"] == F.TRACK_IN
     assert "git_commit" in meta and "data_split" in meta and len(json.loads(meta["skeleton"])) == 31
+    if kind in ("mapping", "placement"):  # the whole future second, as the runtime splices it
+        assert meta["kind"] == kind and json.loads(meta["output_keys"]) == list(range(1, F.FUTURE + 1))
     sess = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
     xb = x[:16]
     got = sess.run(None, {"x": xb})[0]

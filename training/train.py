@@ -114,7 +114,7 @@ def main(argv=None):
     ap.add_argument("--config", choices=sorted(CONFIGS), default="full")
     ap.add_argument("--ablations", default=None, help="also train ablations (a), (b) into this folder")
     ap.add_argument("--only", default=None,
-                    help="comma list of what to train: mapping, contacts, anchor, hip, leader, follower (the shipped models)"
+                    help="comma list of what to train: mapping, placement, contacts, anchor, hip, leader, follower (the shipped models)"
                          " and, with --ablations, vanilla, pastinput (default: all)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: all cores)")
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto")
@@ -135,6 +135,9 @@ def main(argv=None):
                     help="mapping: also train on the clips played backwards, their loss on the follower's root "
                          "positions only (placement), on all the follower's outputs (follower), on both dancers' "
                          "(both), or not at all (none, shipped: see models/README.md)")
+    ap.add_argument("--placement-reverse", choices=tuple(REVERSE_WEIGHTS), default="follower",
+                    help="the placement network (the mapping's recipe, her roots read from it): the clips played "
+                         "backwards weighted as --map-reverse's choices (default follower, shipped)")
     ap.add_argument("--map-timewarp", default=None,
                     help="mapping: also train on the clips replayed at these speeds, e.g. 0.9,1.1")
     ap.add_argument("--paper-decoder", action="store_true",
@@ -182,7 +185,7 @@ def main(argv=None):
     t_all = time.time()
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
-    only = set(args.only.split(",")) if args.only else {"mapping", "contacts", "anchor", "hip", "leader",
+    only = set(args.only.split(",")) if args.only else {"mapping", "placement", "contacts", "anchor", "hip", "leader",
                                                         "follower", "vanilla", "pastinput"}
     # the recipe options given on the command line (paths and machine settings aside)
     overrides = {k: v for k, v in vars(args).items() if v != ap.get_default(k)
@@ -193,18 +196,21 @@ def main(argv=None):
         "data_split": "CMU salsa takes 01-13 at 30 Hz, the first 80% of each take's train frames "
                       "(split 'fit', for comparing recipes); mirror augmented"}
 
-    if "mapping" in only:
+    def mapping_like(name, reverse):
+        """The mapping network (``name`` mapping), or the placement network (the
+        same network and recipe, also trained on the clips played backwards with
+        the loss on the follower's outputs: ``placement``)."""
         map_clips = clips
         if args.map_timewarp:
             map_clips = clips + time_warp(clips, [float(r) for r in args.map_timewarp.split(",")])
         x, y = mapping_samples(map_clips)
         w = None
-        if args.map_reverse != "none":  # the clips played backwards, their outputs' groups weighted 0 or 1
+        if reverse != "none":  # the clips played backwards, their outputs' groups weighted 0 or 1
             xr, yr = mapping_samples(time_reverse(map_clips))
             w = np.ones((len(x) + len(xr), 2, len(MappingNet.GROUPS)), dtype=np.float32)
-            w[len(x):] = REVERSE_WEIGHTS[args.map_reverse]
+            w[len(x):] = REVERSE_WEIGHTS[reverse]
             x, y = np.concatenate([x, xr]), np.concatenate([y, yr])
-        log(f"mapping: {x.shape} -> {y.shape}")
+        log(f"{name}: {x.shape} -> {y.shape}")
         noise = 0.1 if args.map_noise is None else args.map_noise
         dropout = 0.1 if args.map_dropout is None else args.map_dropout
         epochs = args.map_epochs or cfg["map_epochs"]
@@ -213,11 +219,18 @@ def main(argv=None):
         m = MappingNet(F.MAP_IN, F.MAP_OUT, hidden, noise=noise, dropout=dropout, loss=args.map_loss)
         info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed, weight_decay=wd, w=w)
         info.update(noise=noise, dropout=dropout, weight_decay=wd, timewarp=args.map_timewarp, loss=args.map_loss,
-                    reverse=args.map_reverse)
-        export(m, "mapping", os.path.join(args.out, "mapping.onnx"), F.MAP_IN,
-               {"hidden": hidden, "train": info, **split_meta}, weights=args.weights)
-        save_checkpoint(m, os.path.join(args.cache, "checkpoints", "mapping.pt"), {"hidden": hidden, **split_meta})
-        report["models"]["mapping"] = info
+                    reverse=reverse)
+        extra = {} if name == "mapping" else {
+            "outputs": "the mapping's layout; the runtime reads the follower's roots (position, heading) only"}
+        export(m, name, os.path.join(args.out, f"{name}.onnx"), F.MAP_IN,
+               {"hidden": hidden, "train": info, **extra, **split_meta}, weights=args.weights)
+        save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), {"hidden": hidden, **split_meta})
+        report["models"][name] = info
+
+    if "mapping" in only:
+        mapping_like("mapping", args.map_reverse)
+    if "placement" in only:  # her placement: where she stands and faces (models/README.md)
+        mapping_like("placement", args.placement_reverse)
 
     def input_net(key, cls, samples, kind, name, extra):
         """A small network on the mapping's input (the contact network, the pose
@@ -308,7 +321,7 @@ def main(argv=None):
             tracker(TrackingNet, role, f"pastinput_{role}", os.path.join(args.ablations, f"pastinput_{role}.onnx"),
                     past_input=True, extra={"ablation": "b", "input": "past three-point trajectory"})
     report["seconds_total"] = time.time() - t_all  # this run
-    report_dir = args.out if only & {"mapping", "contacts", "anchor", "hip", "leader", "follower"} else args.ablations
+    report_dir = args.out if only & {"mapping", "placement", "contacts", "anchor", "hip", "leader", "follower"} else args.ablations
     path = os.path.join(report_dir, "training_report.json")
     if report["models"]:
         if os.path.exists(path):  # a partial run (--only, --roles) keeps the other models' entries
