@@ -4,13 +4,13 @@
 
 Runs the product loop (:class:`~.runtime.Synthesizer`, batch 1) over the
 embedded sample take, repeated to the frame count, timing every frame and
-splitting it into the networks (the four ONNX runs), pose recovery (rigid
+splitting it into the networks (every ONNX run), pose recovery (rigid
 pose, foot locking, optional IK) and features (everything else: input
 cleaning, feature building, decoding). A duet frame holds two characters, so
 per character-frame = frame time / 2.
 
 The compute floor is the bare matrix–vector products of the same weights in
-numpy on the same machine (one float32 ``W @ x`` per Linear layer of the four
+numpy on the same machine (one float32 ``W @ x`` per Linear layer of the seven
 networks, no activations; int8 layers dequantised): what the networks'
 arithmetic costs at the least in plain float32. It is timed in blocks between
 the loop's blocks, so both see the same machine (a shared machine's speed

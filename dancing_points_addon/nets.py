@@ -108,7 +108,7 @@ _CACHE_LOCK = threading.Lock()
 
 
 def load_nets(model_dir=None, threads: int = 1) -> dict:
-    """``{"mapping", "leader", "follower": OnnxNet}`` of a models folder (see
+    """``{kind: OnnxNet}`` for every kind of :data:`MODEL_FILES` of a models folder (see
     :func:`resolve_model_dir`), loaded once per process and thread count (and
     again when a file changes). :class:`ModelError` when they cannot be loaded."""
     d = resolve_model_dir(model_dir)

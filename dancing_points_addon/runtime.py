@@ -202,7 +202,7 @@ RECENTRE_POSE = (0.05, True)
 
 
 class Synthesizer:
-    """Holds the four ONNX sessions and the rollout state.
+    """Holds the ONNX sessions (:data:`~.nets.MODEL_FILES`) and the rollout state.
 
     ``options``: a :class:`SynthesisOptions`; ``nets``: already loaded networks
     (default: :func:`~.nets.load_nets` of ``options.models``); ``follower``: the
@@ -444,7 +444,7 @@ class Synthesizer:
         (l_roots, l_tr), (f_roots, f_tr) = F.decode_mapping(y, root[None])
         l_roots, l_tr, f_roots, f_tr = l_roots[0], l_tr[0], f_roots[0], f_tr[0]
         self.prev_leader_pred = (l_roots[0], l_tr[0])
-        if self.record_predictions:  # the raw mapping output, world, back at the output scale
+        if self.record_predictions:  # the mapping's output (her roots the placement network's), world, output scale
             pred = to_world(np.stack([l_tr, f_tr]), np.stack([l_roots, f_roots]))
             self.last_prediction = (pred if s == 1.0 else pred * (1.0 / s)).astype(np.float32)
         placement = self._placement

@@ -8,7 +8,8 @@ in the scene beside a baked duet.
 - **predicted trajectories** ("DP Predictions"): a curve object (bevelled
   poly splines) with six splines, the mapping network's 1 s predicted future
   of both dancers' three tracked points at the current frame (the paper's
-  figure), leader cyan, follower orange (bright: they read in a 960 x 540 render). The predictions of every
+  figure; hers placed on the placement network's predicted roots, what her
+  placement steers to), leader cyan, follower orange (bright: they read in a 960 x 540 render). The predictions of every
   frame are stored on the object as an ID property float array (saved in the
   .blend); a persistent ``frame_change_pre`` handler writes the current
   frame's into the spline points;

@@ -652,3 +652,21 @@ def test_her_placement_steers_where_the_placement_network_says(test_duets):
     with pytest.raises(ValueError, match="placement.onnx"):
         Synthesizer(nets=nets)
     Synthesizer(nets=nets, follower=FollowerOptions(placement_source="mapping"))  # the mapping alone will do
+
+
+def test_splice_takes_her_roots_only():
+    """``features.splice_follower_roots``: decoded, the spliced output has the
+    placement network's roots of her (position and heading, every future frame)
+    and the mapping's everything else: his roots and points, her points in her
+    own root frame. Neither input is changed."""
+    rng = np.random.default_rng(0)
+    y, q = rng.standard_normal((2, 3, F.MAP_OUT)).astype(np.float32)
+    y0, q0 = y.copy(), q.copy()
+    lead = np.tile([0.3, -0.2, 0.6, 0.8], (3, 1))
+    out = F.splice_follower_roots(y, q)
+    assert np.array_equal(y, y0) and np.array_equal(q, q0)
+    (yl_r, yl_p), (yf_r, yf_p) = F.decode_mapping(y, lead)
+    (ql_r, _), (qf_r, _) = F.decode_mapping(q, lead)
+    (ol_r, ol_p), (of_r, of_p) = F.decode_mapping(out, lead)
+    assert np.array_equal(ol_r, yl_r) and np.array_equal(ol_p, yl_p) and np.array_equal(of_p, yf_p)
+    assert np.array_equal(of_r, qf_r) and not np.allclose(of_r, yf_r) and not np.allclose(ql_r, yl_r)

@@ -246,3 +246,31 @@ def _check_float_compute(tmp_path, qpath, xb, want, float_model):
     assert rel < 0.01
     with pytest.raises(ValueError, match="not an int8 network"):
         float_compute(str(tmp_path / "mapping.onnx"))  # the float export
+
+
+def test_train_command_trains_and_reexports_the_placement_network(salsa_dir, tmp_path):
+    """``python -m training.train --only placement`` (tiny configuration, fit
+    split): only ``placement.onnx`` and the report are written, with its kind,
+    the backwards recipe in its training figures and a note of what the runtime
+    reads; its checkpoint re-exports through ``training.export`` to the same
+    network and metadata."""
+    import onnx as _onnx
+
+    from training import export as X
+
+    out, cache, again = tmp_path / "m", tmp_path / "cache", tmp_path / "again"
+    assert T.main(["--data", str(salsa_dir), "--config", "tiny", "--only", "placement", "--split", "fit",
+                   "--out", str(out), "--cache", str(cache)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["placement.onnx", "training_report.json"]
+    report = json.loads((out / "training_report.json").read_text())
+    assert set(report["models"]) == {"placement"} and report["models"]["placement"]["reverse"] == "follower"
+    meta = {p.key: p.value for p in _onnx.load(str(out / "placement.onnx")).metadata_props}
+    assert meta["kind"] == "placement" and "follower's roots" in meta["outputs"]
+    assert json.loads(meta["output_keys"]) == list(range(1, F.FUTURE + 1))
+    assert X.main(["--checkpoints", str(cache / "checkpoints"), "--out", str(again), "--names", "placement"]) == 0
+    meta2 = {p.key: p.value for p in _onnx.load(str(again / "placement.onnx")).metadata_props}
+    assert meta2["kind"] == "placement" and meta2["outputs"] == meta["outputs"]
+    x = np.random.default_rng(0).standard_normal((4, F.MAP_IN)).astype(np.float32)
+    a, b = (ort.InferenceSession(str(d / "placement.onnx"), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
+            for d in (out, again))
+    assert a.shape == (4, F.MAP_OUT) and np.allclose(a, b, atol=1e-5)

@@ -3,9 +3,11 @@
     python -m training.train --data ../shared/data/cmu_salsa --out models
 
 Trains, on the SPEC §5 train split only (mirror augmented): the mapping
-network, the contact network (both dancers' foot contacts from the mapping's
-input; it times the follower's steps) and one tracking network per dancer
-(leader, follower), then exports them to ONNX. ``--ablations DIR`` also trains ablation (a), a vanilla MLP
+network, the follower's placement network (the mapping's recipe, also on the
+clips played backwards), the contact network (both dancers' foot contacts from
+the mapping's input; it times the follower's steps), the follower's pose anchor
+and hip-heading network, and one tracking network per dancer (leader,
+follower), then exports them to ONNX (``--only`` picks some). ``--ablations DIR`` also trains ablation (a), a vanilla MLP
 tracker, and (b), a tracker fed the past instead of the future three-point
 trajectory, for both dancers, under the same settings, into ``DIR``.
 No validation split is carved from the test frames: training runs a fixed
@@ -224,7 +226,7 @@ def main(argv=None):
             "outputs": "the mapping's layout; the runtime reads the follower's roots (position, heading) only"}
         export(m, name, os.path.join(args.out, f"{name}.onnx"), F.MAP_IN,
                {"hidden": hidden, "train": info, **extra, **split_meta}, weights=args.weights)
-        save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), {"hidden": hidden, **split_meta})
+        save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), {"hidden": hidden, **extra, **split_meta})
         report["models"][name] = info
 
     if "mapping" in only:
