@@ -264,6 +264,7 @@ def test_train_command_trains_and_reexports_the_placement_network(salsa_dir, tmp
     assert sorted(p.name for p in out.iterdir()) == ["placement.onnx", "training_report.json"]
     report = json.loads((out / "training_report.json").read_text())
     assert set(report["models"]) == {"placement"} and report["models"]["placement"]["reverse"] == "follower"
+    assert report["models"]["placement"]["timewarp"] is None  # (--placement-timewarp: not shipped)
     meta = {p.key: p.value for p in _onnx.load(str(out / "placement.onnx")).metadata_props}
     assert meta["kind"] == "placement" and "follower's roots" in meta["outputs"]
     assert json.loads(meta["output_keys"]) == list(range(1, F.FUTURE + 1))

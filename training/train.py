@@ -140,6 +140,9 @@ def main(argv=None):
     ap.add_argument("--placement-reverse", choices=tuple(REVERSE_WEIGHTS), default="follower",
                     help="the placement network (the mapping's recipe, her roots read from it): the clips played "
                          "backwards weighted as --map-reverse's choices (default follower, shipped)")
+    ap.add_argument("--placement-timewarp", default=None,
+                    help="the placement network: also on the clips replayed at these speeds, each also played "
+                         "backwards, e.g. 0.9,1.1 (measured in session 16, not shipped: models/README.md)")
     ap.add_argument("--map-timewarp", default=None,
                     help="mapping: also train on the clips replayed at these speeds, e.g. 0.9,1.1")
     ap.add_argument("--paper-decoder", action="store_true",
@@ -198,13 +201,13 @@ def main(argv=None):
         "data_split": "CMU salsa takes 01-13 at 30 Hz, the first 80% of each take's train frames "
                       "(split 'fit', for comparing recipes); mirror augmented"}
 
-    def mapping_like(name, reverse):
+    def mapping_like(name, reverse, timewarp):
         """The mapping network (``name`` mapping), or the placement network (the
         same network and recipe, also trained on the clips played backwards with
         the loss on the follower's outputs: ``placement``)."""
         map_clips = clips
-        if args.map_timewarp:
-            map_clips = clips + time_warp(clips, [float(r) for r in args.map_timewarp.split(",")])
+        if timewarp:
+            map_clips = clips + time_warp(clips, [float(r) for r in timewarp.split(",")])
         x, y = mapping_samples(map_clips)
         w = None
         if reverse != "none":  # the clips played backwards, their outputs' groups weighted 0 or 1
@@ -220,7 +223,7 @@ def main(argv=None):
         wd = 1e-4 if args.map_wd is None else args.map_wd
         m = MappingNet(F.MAP_IN, F.MAP_OUT, hidden, noise=noise, dropout=dropout, loss=args.map_loss)
         info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed, weight_decay=wd, w=w)
-        info.update(noise=noise, dropout=dropout, weight_decay=wd, timewarp=args.map_timewarp, loss=args.map_loss,
+        info.update(noise=noise, dropout=dropout, weight_decay=wd, timewarp=timewarp, loss=args.map_loss,
                     reverse=reverse)
         extra = {} if name == "mapping" else {
             "outputs": "the mapping's layout; the runtime reads the follower's roots (position, heading) only"}
@@ -230,9 +233,9 @@ def main(argv=None):
         report["models"][name] = info
 
     if "mapping" in only:
-        mapping_like("mapping", args.map_reverse)
+        mapping_like("mapping", args.map_reverse, args.map_timewarp)
     if "placement" in only:  # her placement: where she stands and faces (models/README.md)
-        mapping_like("placement", args.placement_reverse)
+        mapping_like("placement", args.placement_reverse, args.placement_timewarp)
 
     def input_net(key, cls, samples, kind, name, extra):
         """A small network on the mapping's input (the contact network, the pose
