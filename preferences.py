@@ -21,8 +21,9 @@ class DancingPointsPreferences(bpy.types.AddonPreferences):
     )
     model_dir: StringProperty(
         name="Model Folder",
-        description="Folder with the synthesis networks (mapping.onnx, placement.onnx, contacts.onnx, pose_anchor.onnx, "
-                    "hip_heading.onnx, tracker_leader.onnx, tracker_follower.onnx); empty: the models bundled with the extension",
+        description="Folder with the synthesis networks (mapping.onnx, placement.onnx, contacts.onnx, "
+                    "pose_anchor.onnx, hip_heading.onnx, tracker_leader.onnx, tracker_follower.onnx); "
+                    "empty: the models bundled with the extension",
         subtype='DIR_PATH',
         default="",
     )

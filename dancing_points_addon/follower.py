@@ -96,8 +96,9 @@ class FollowerOptions:
     # where her hips are turned towards: "net", the hip-heading network's (``nets["hip"]``,
     # ``hip_heading.onnx``: her hip heading relative to his root from his past 0.5 s, over
     # ``HIP_BINS`` bins; its circular mean), or "mapping", the predicted heading of her root
-    # (session 13; the placement network's with ``placement_source="net"``). Chosen on val (four mapping seeds): heading 50.2 -> 46.1 degrees, her full-body error,
-    # hands and holds as they were (models/README.md, "Her hips from a hip-heading network")
+    # (session 13; the placement network's with ``placement_source="net"``). Chosen on val (four
+    # mapping seeds): heading 50.2 -> 46.1 degrees, her full-body error, hands and holds as they
+    # were (models/README.md, "Her hips from a hip-heading network")
     hip_source: str = "net"
     # where her placement steers to: "net", the placement network's predicted roots of her
     # (``nets["placement"]``, ``placement.onnx``: the mapping's network and recipe, trained also on
@@ -105,8 +106,9 @@ class FollowerOptions:
     # outputs): her predicted roots (position and heading) from it, spliced into the mapping's
     # output, so her placement, her tracker's keys and her predicted wrists (holds) are placed by
     # them, her predicted points in her root frame and his duet the mapping's; or "mapping", the
-    # mapping's roots (sessions 1-15). Chosen on val (four seeds each): her full-body error 34.51 -> 32.40 cm,
-    # heading 46.1 -> 45.9, hand 11.58 -> 10.00 (models/README.md, "Her placement from a placement network")
+    # mapping's roots (sessions 1-15). Chosen on val (four seed pairs): her full-body error
+    # 34.50 -> 32.40 cm, heading 46.0 -> 45.9, hand 11.58 -> 10.00 (models/README.md, "Her placement
+    # from a placement network")
     placement_source: str = "net"
     # degrees: in her output (after her foot lock), each thigh's twist about itself against her pelvis
     # within this, and the bones below it within her state's limits (``pose.LegJoints.twist``,

@@ -16,8 +16,8 @@ from .skeleton import LOWER_BODY
 
 MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
-MODEL_FILES = {"mapping": "mapping.onnx", "placement": "placement.onnx", "contacts": "contacts.onnx", "anchor": "pose_anchor.onnx",
-               "hip": "hip_heading.onnx", "leader": "tracker_leader.onnx",
+MODEL_FILES = {"mapping": "mapping.onnx", "placement": "placement.onnx", "contacts": "contacts.onnx",
+               "anchor": "pose_anchor.onnx", "hip": "hip_heading.onnx", "leader": "tracker_leader.onnx",
                "follower": "tracker_follower.onnx"}
 
 
@@ -136,9 +136,7 @@ def check_models(model_dir=None, threads: int = 1) -> str:
     nets = load_nets(model_dir, threads)
     d = resolve_model_dir(model_dir)
     want = F.layout()
-    sizes = {"mapping": (want["map_in"], None), "placement": (want["map_in"], None), "contacts": (want["map_in"], None),
-             "anchor": (want["map_in"], None), "hip": (want["map_in"], None), "leader": (want["track_in"], None),
-             "follower": (want["track_in"], None)}
+    sizes = {k: (want["track_in" if k in ("leader", "follower") else "map_in"], None) for k in MODEL_FILES}
     for kind, net in nets.items():
         path = os.path.join(d, MODEL_FILES[kind])
         try:

@@ -146,8 +146,8 @@ def test_build_extension_bundles_models_and_wheels(tmp_path):
     with zipfile.ZipFile(archive) as zf:
         names = zf.namelist()
         manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
-    for f in ("models/mapping.onnx", "models/placement.onnx", "models/contacts.onnx", "models/pose_anchor.onnx", "models/hip_heading.onnx",
-              "models/tracker_leader.onnx", "models/tracker_follower.onnx",
+    for f in ("models/mapping.onnx", "models/placement.onnx", "models/contacts.onnx", "models/pose_anchor.onnx",
+              "models/hip_heading.onnx", "models/tracker_leader.onnx", "models/tracker_follower.onnx",
               "dancing_points_addon/samples/sample_take.csv"):
         assert f in names
     wheels = [n for n in names if n.startswith("wheels/")]

@@ -216,8 +216,8 @@ def test_synthesize_rejects_broken_bvh(tmp_path):
 
 
 def test_models_are_shipped():
-    for f in ("mapping.onnx", "placement.onnx", "contacts.onnx", "pose_anchor.onnx", "hip_heading.onnx", "tracker_leader.onnx",
-              "tracker_follower.onnx"):
+    for f in ("mapping.onnx", "placement.onnx", "contacts.onnx", "pose_anchor.onnx", "hip_heading.onnx",
+              "tracker_leader.onnx", "tracker_follower.onnx"):
         p = ROOT / "models" / f
         assert p.exists() and p.stat().st_size < 20 * 1024 * 1024
     assert MODEL_DIR == str(ROOT / "models")

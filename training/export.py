@@ -51,6 +51,9 @@ def tracker_keep() -> np.ndarray:
     return np.arange(F.KEY_OUT)  # key 1 = TRACK_KEYS[0]
 
 
+WHOLE_FUTURE = ("mapping", "placement")  # the kinds exported with all their future frames (mapping_keep)
+
+
 def mapping_keep() -> np.ndarray:
     return np.arange(F.MAP_OUT)  # all 30 future frames: the runtime picks its keys
 
@@ -173,7 +176,7 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
     "int8" (quantised weights, int8 compute: what ships) or "fp32" (the exact graph)."""
     if weights not in WEIGHTS:
         raise ValueError(f"weights must be one of {WEIGHTS}")
-    keep = tracker_keep() if kind.startswith("tracker") else mapping_keep() if kind in ("mapping", "placement") else None
+    keep = tracker_keep() if kind.startswith("tracker") else mapping_keep() if kind in WHOLE_FUTURE else None
     wrapped = model.cpu().eval().truncated(keep)
     dummy = torch.zeros(1, n_in)
     tmp = path + ".tmp"
@@ -190,7 +193,7 @@ def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None
         "past_frames": str(F.PAST),
         "future_frames": str(F.FUTURE),
         "output_keys": json.dumps([1] if kind.startswith("tracker") else list(range(1, F.FUTURE + 1))
-                                  if kind in ("mapping", "placement") else [0]),
+                                  if kind in WHOLE_FUTURE else [0]),
         "skeleton": json.dumps(list(JOINT_NAMES)),
         "data_split": "CMU salsa takes 01-13 at 30 Hz, frames [0, floor(0.8*n30)) of each take (SPEC §5); "
                       "mirror augmented",
@@ -216,7 +219,8 @@ def main(argv=None):
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoints", default="cache/checkpoints")
     ap.add_argument("--out", default="models")
-    ap.add_argument("--names", default="mapping,placement,contacts,pose_anchor,hip_heading,tracker_leader,tracker_follower",
+    ap.add_argument("--names", default="mapping,placement,contacts,pose_anchor,hip_heading,tracker_leader,"
+                                       "tracker_follower",
                     help="checkpoints to export (e.g. vanilla_leader,pastinput_follower for the ablations)")
     ap.add_argument("--weights", choices=WEIGHTS, default="int8",
                     help="int8: quantised weights, int8 compute (shipped); fp32: the exact float graph")
@@ -240,7 +244,7 @@ def main(argv=None):
     for name in args.names.split(","):
         ck = torch.load(os.path.join(args.checkpoints, f"{name}.pt"), weights_only=False)
         meta = dict(ck["meta"])
-        if name in ("mapping", "placement"):
+        if name in WHOLE_FUTURE:
             m, n_in, kind = MappingNet(F.MAP_IN, F.MAP_OUT, meta["hidden"]), F.MAP_IN, name
         elif name == "contacts":
             m, n_in, kind = ContactNet(F.MAP_IN, hidden=meta["hidden"], layers=meta["layers"]), F.MAP_IN, "contacts"

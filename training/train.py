@@ -7,9 +7,10 @@ network, the follower's placement network (the mapping's recipe, also on the
 clips played backwards), the contact network (both dancers' foot contacts from
 the mapping's input; it times the follower's steps), the follower's pose anchor
 and hip-heading network, and one tracking network per dancer (leader,
-follower), then exports them to ONNX (``--only`` picks some). ``--ablations DIR`` also trains ablation (a), a vanilla MLP
-tracker, and (b), a tracker fed the past instead of the future three-point
-trajectory, for both dancers, under the same settings, into ``DIR``.
+follower), then exports them to ONNX (``--only`` picks some). ``--ablations DIR``
+also trains ablation (a), a vanilla MLP tracker, and (b), a tracker fed the past
+instead of the future three-point trajectory, for both dancers, under the same
+settings, into ``DIR``.
 No validation split is carved from the test frames: training runs a fixed
 number of epochs, so test data cannot steer it.
 """
@@ -26,6 +27,7 @@ import torch
 
 from dancing_points_addon import features as F
 from dancing_points_addon.follower import HIP_BINS
+from dancing_points_addon.nets import MODEL_FILES
 from training.dataset import load_clips
 
 from .data import (anchor_samples, contact_samples, default_pose, floor_levels_of, hip_heading_samples,
@@ -86,6 +88,9 @@ def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None,
 REVERSE_WEIGHTS = {"placement": [[0, 0, 0, 0, 0], [1, 0, 0, 0, 0]], "follower": [[0] * 5, [1] * 5],
                    "both": [[1] * 5, [1] * 5], "none": [[0] * 5, [0] * 5]}
 
+# what ``--only`` names for the shipped networks: the runtime's kinds
+SHIPPED = tuple(MODEL_FILES)
+
 CONFIGS = {
     # hidden units, epochs
     # Teacher-forced ground-truth keys, no rollout stage; current-pose noise
@@ -116,7 +121,7 @@ def main(argv=None):
     ap.add_argument("--config", choices=sorted(CONFIGS), default="full")
     ap.add_argument("--ablations", default=None, help="also train ablations (a), (b) into this folder")
     ap.add_argument("--only", default=None,
-                    help="comma list of what to train: mapping, placement, contacts, anchor, hip, leader, follower (the shipped models)"
+                    help=f"comma list of what to train: {', '.join(SHIPPED)} (the shipped models)"
                          " and, with --ablations, vanilla, pastinput (default: all)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: all cores)")
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto")
@@ -190,8 +195,7 @@ def main(argv=None):
     t_all = time.time()
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
-    only = set(args.only.split(",")) if args.only else {"mapping", "placement", "contacts", "anchor", "hip", "leader",
-                                                        "follower", "vanilla", "pastinput"}
+    only = set(args.only.split(",")) if args.only else {*SHIPPED, "vanilla", "pastinput"}
     # the recipe options given on the command line (paths and machine settings aside)
     overrides = {k: v for k, v in vars(args).items() if v != ap.get_default(k)
                  and k not in ("data", "out", "cache", "ablations", "only", "threads", "device", "split", "config")}
@@ -229,7 +233,8 @@ def main(argv=None):
             "outputs": "the mapping's layout; the runtime reads the follower's roots (position, heading) only"}
         export(m, name, os.path.join(args.out, f"{name}.onnx"), F.MAP_IN,
                {"hidden": hidden, "train": info, **extra, **split_meta}, weights=args.weights)
-        save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), {"hidden": hidden, **extra, **split_meta})
+        save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"),
+                        {"hidden": hidden, **extra, **split_meta})
         report["models"][name] = info
 
     if "mapping" in only:
@@ -326,7 +331,7 @@ def main(argv=None):
             tracker(TrackingNet, role, f"pastinput_{role}", os.path.join(args.ablations, f"pastinput_{role}.onnx"),
                     past_input=True, extra={"ablation": "b", "input": "past three-point trajectory"})
     report["seconds_total"] = time.time() - t_all  # this run
-    report_dir = args.out if only & {"mapping", "placement", "contacts", "anchor", "hip", "leader", "follower"} else args.ablations
+    report_dir = args.out if only & set(SHIPPED) else args.ablations
     path = os.path.join(report_dir, "training_report.json")
     if report["models"]:
         if os.path.exists(path):  # a partial run (--only, --roles) keeps the other models' entries
