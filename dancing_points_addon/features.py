@@ -10,6 +10,11 @@ Mapping network (paper §4.3)
             dancer, the root relative to the leader's current root (4) and the
             three tracked points in that frame's own root (9)      -> 30 × 26 = 780
 
+Placement network (issue 13)
+    input   the mapping's input and her roots at ``PLACEMENT_LAGS`` frames back,
+            relative to the leader's current root (3 × 4)         -> 195 + 12 = 207
+    output  the mapping's layout (780); the runtime reads her roots from it
+
 Tracking network (paper §4.2), one dancer
     input   current pose in its own root F0: positions (93), rotations as 6D (186),
             contacts (4); at the future keys ``TRACK_KEYS``: root relative to F0
@@ -38,6 +43,11 @@ FRAME_POINTS = slice(ROOT_DIM, FRAME_DIM)
 
 MAP_IN = PAST * FRAME_DIM
 MAP_OUT = FUTURE * 2 * FRAME_DIM
+# The placement network (issue 13) sees the mapping's input and her own placement: her roots at
+# these frames back (t − 1, t − 6, t − 11: the runtime's state, her output so far) relative to the
+# leader's current root
+PLACEMENT_LAGS = (1, 6, 11)
+PLACE_IN = MAP_IN + ROOT_DIM * len(PLACEMENT_LAGS)
 POSE_DIM = N_JOINTS * 3 + N_JOINTS * 6 + 4
 TRACK_IN = POSE_DIM + len(TRACK_KEYS) * FRAME_DIM
 KEY_OUT = ROOT_DIM + N_JOINTS * 3 + N_JOINTS * 6 + 4
@@ -67,8 +77,8 @@ def pose_rotations(pose: np.ndarray) -> np.ndarray:
 def layout() -> dict:
     """Feature layout, written into the ONNX metadata."""
     return {"fps": FPS, "past": PAST, "future": FUTURE, "track_keys": TRACK_KEYS.tolist(),
-            "map_in": MAP_IN, "map_out": MAP_OUT, "track_in": TRACK_IN, "track_out": TRACK_OUT,
-            "key_out": KEY_OUT, "pose_dim": POSE_DIM, "rotation": "6d (first two columns)",
+            "map_in": MAP_IN, "map_out": MAP_OUT, "place_in": PLACE_IN, "placement_lags": list(PLACEMENT_LAGS),
+            "track_in": TRACK_IN, "track_out": TRACK_OUT, "key_out": KEY_OUT, "pose_dim": POSE_DIM, "rotation": "6d (first two columns)",
             "root": "(x, z, cos, sin), heading from +Z towards +X"}
 
 
@@ -82,6 +92,14 @@ def mapping_input(roots: np.ndarray, tracked: np.ndarray) -> np.ndarray:
     p = to_local(tracked.reshape(-1, 3), ref[0]) if B == 1 else to_local(tracked.reshape(B, -1, 3), ref)
     out[:, FRAME_POINTS] = p.reshape(-1, POINTS_DIM)
     return out.reshape(B, MAP_IN)
+
+
+def placement_input(x: np.ndarray, lead_root_t: np.ndarray, her_roots: np.ndarray) -> np.ndarray:
+    """The placement network's input: the mapping input ``x (B, MAP_IN)`` and her
+    roots ``(B, len(PLACEMENT_LAGS), 4)`` (world, at :data:`PLACEMENT_LAGS`) relative
+    to the leader's current root ``(B, 4)`` -> ``(B, PLACE_IN)``."""
+    state = root_relative(np.asarray(lead_root_t)[:, None], np.asarray(her_roots)).reshape(len(x), -1)
+    return np.concatenate([x, state.astype(x.dtype)], axis=1)
 
 
 def _dancer_future(ref, roots, tracked):

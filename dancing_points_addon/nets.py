@@ -136,7 +136,10 @@ def check_models(model_dir=None, threads: int = 1) -> str:
     nets = load_nets(model_dir, threads)
     d = resolve_model_dir(model_dir)
     want = F.layout()
-    sizes = {k: (want["track_in" if k in ("leader", "follower") else "map_in"], None) for k in MODEL_FILES}
+    ins = {"leader": "track_in", "follower": "track_in"}
+    if "state_lags" in nets["placement"].meta:  # (train --placement-state: her own placement beside the lead)
+        ins["placement"] = "place_in"
+    sizes = {k: (want[ins.get(k, "map_in")], None) for k in MODEL_FILES}
     for kind, net in nets.items():
         path = os.path.join(d, MODEL_FILES[kind])
         try:

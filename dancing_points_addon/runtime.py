@@ -267,6 +267,8 @@ class Synthesizer:
         self._placement_net = fo is not None and fo.placement_source == "net"
         if self._placement_net and nets.get("placement") is None:
             raise ValueError("FollowerOptions.placement_source='net' needs the placement network (placement.onnx)")
+        # a placement network trained with ``train --placement-state`` also sees her own placement
+        self._placement_state = self._placement_net and "state_lags" in getattr(nets["placement"], "meta", {})
         # the follower's arm lengths (shoulder to wrist), for hand holds
         bl = np.linalg.norm(self.bone_vectors["follower"], axis=-1)
         self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
@@ -302,6 +304,7 @@ class Synthesizer:
         self._separation = Separation(fo.min_distance) if fo is not None else None
         self._hold = HandHold(fo) if fo is not None and fo.hold else None
         self._fol_target = None  # (offset from the leader, world root) this frame
+        self._her_roots = []  # her roots so far, the last max(F.PLACEMENT_LAGS) frames (the placement network's)
         self._contact_p = None  # the contact network's probabilities this frame (leader 4, follower 4)
         self._fol_effector = None
         if self.foot_lock or self.hand_ik:
@@ -433,8 +436,9 @@ class Synthesizer:
             self.hist_tracked[-1] = tracked_s
         x = F.mapping_input(self.hist_roots[None], self.hist_tracked[None])
         y = self.nets["mapping"](x)
-        if self._placement_net:  # her predicted roots from the placement network
-            y = F.splice_follower_roots(y, self.nets["placement"](x))
+        if self._placement_net:  # her predicted roots from the placement network (seeing her placement or not)
+            px = self._placement_input(x, root, y) if self._placement_state else x
+            y = F.splice_follower_roots(y, self.nets["placement"](px))
         if self._net_steps:
             p = self.nets["contacts"](x)[0].astype(np.float64)
             b = self.follower_options.contact_smooth
@@ -578,6 +582,22 @@ class Synthesizer:
         """Leader's key inputs: the current input frame, then the mapping's prediction."""
         return (np.concatenate([root[None], l_roots.take(self._OFF, axis=0)]),
                 np.concatenate([cur_local[None], l_tr.take(self._OFF, axis=0)]))
+
+    def _placement_input(self, x, root, y):
+        """The placement network's input: the mapping's ``x`` and her own roots at
+        ``F.PLACEMENT_LAGS`` frames back (her output so far, the earliest where
+        the take is younger) relative to the leader's current ``root``; on the first
+        frame, before she is placed, the mapping's prediction ``y`` of her next root."""
+        hist = self._her_roots
+        if self.follower.root is None:
+            rel = np.array(y, dtype=np.float64).reshape(F.FUTURE, 2, F.FRAME_DIM)[0, 1, F.FRAME_ROOT]
+            rel[2:] /= max(float(np.hypot(rel[2], rel[3])), 1e-9)
+            return np.concatenate([x, np.tile(rel, len(F.PLACEMENT_LAGS))[None].astype(x.dtype)], axis=1)
+        hist.append(self.follower.root.copy())
+        if len(hist) > max(F.PLACEMENT_LAGS):
+            del hist[0]
+        her = np.stack([hist[max(len(hist) - lag, 0)] for lag in F.PLACEMENT_LAGS])
+        return F.placement_input(x, root[None], her[None])
 
     def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
         """Follower's key inputs: last step's prediction of frame t, then this step's.

@@ -654,6 +654,61 @@ def test_her_placement_steers_where_the_placement_network_says(test_duets):
     Synthesizer(nets=nets, follower=FollowerOptions(placement_source="mapping"))  # the mapping alone will do
 
 
+@pytest.fixture(scope="module")
+def state_placement(salsa_dir, tmp_path_factory):
+    """A tiny placement network trained with ``train --placement-state`` (fit split)."""
+    from dancing_points_addon.nets import OnnxNet
+    from training import train as T
+
+    d = tmp_path_factory.mktemp("state_placement")
+    assert T.main(["--data", str(salsa_dir), "--config", "tiny", "--only", "placement", "--placement-state",
+                   "--split", "fit", "--out", str(d / "m"), "--cache", str(d / "cache")]) == 0
+    return OnnxNet(str(d / "m" / "placement.onnx"))
+
+
+def test_placement_network_sees_her_own_placement(state_placement):
+    """A placement network trained with ``--placement-state`` (its metadata has
+    ``state_lags``) is fed the mapping's input and her own roots at
+    ``PLACEMENT_LAGS`` frames back (her output so far, the earliest while the take
+    is younger; the mapping's next root of her on the first frame) relative to
+    the leader's current root. The shipped one (no ``state_lags``) gets the
+    mapping's input alone."""
+    from dancing_points_addon.representation import root_relative
+
+    nets = dict(load_nets())
+    assert "state_lags" not in nets["placement"].meta and "state_lags" in state_placement.meta
+    seen = []
+
+    def spy(net):
+        class Spy:
+            meta, path = net.meta, net.path
+
+            def __call__(self, x):
+                seen.append((x.copy(), None if synth.follower.root is None else synth.follower.root.copy(),
+                             synth.hist_roots[-1].copy()))
+                return net(x)
+        return Spy()
+
+    take = test_take("10", 4)[0]
+    synth = Synthesizer(nets=dict(nets, placement=spy(nets["placement"])))
+    synth.synthesize(take)
+    assert {x.shape[1] for x, _, _ in seen} == {F.MAP_IN}
+    seen.clear()
+    synth = Synthesizer(nets=dict(nets, placement=spy(state_placement)))
+    duet = synth.synthesize(take)
+    assert len(seen) == duet.n_frames >= 100 and seen[0][1] is None
+    assert {x.shape[1] for x, _, _ in seen} == {F.PLACE_IN}
+    mapping = nets["mapping"](seen[0][0][:, :F.MAP_IN]).reshape(F.FUTURE, 2, F.FRAME_DIM)[0, 1, F.FRAME_ROOT]
+    first = seen[0][0][0, F.MAP_IN:].reshape(-1, 4)
+    assert np.allclose(first[:, :2], mapping[:2], atol=1e-5) and np.allclose(first[1:], first[0])
+    hers = [r for _, r, _ in seen[1:]]
+    for t in (1, 5, 20, len(seen) - 1):
+        x, _, his = seen[t]
+        want = root_relative(his[None], np.stack([hers[max(t - lag, 0)] for lag in F.PLACEMENT_LAGS]))
+        assert np.allclose(x[0, F.MAP_IN:].reshape(-1, 4), want, atol=1e-5)
+    assert np.isfinite(duet.follower_positions).all()
+
+
 def test_splice_takes_her_roots_only():
     """``features.splice_follower_roots``: decoded, the spliced output has the
     placement network's roots of her (position and heading, every future frame)

@@ -15,7 +15,8 @@ from dancing_points_addon.skeleton import LOWER_BODY
 from training.dataset import build_clips, split_range
 from training import train as T
 from training.data import (anchor_samples, contact_samples, default_pose, floor_levels_of, hip_heading_samples,
-                           mapping_samples, time_reverse, tracking_samples)
+                           mapping_samples, noisy_placement_state, placement_samples, time_reverse,
+                           tracking_samples)
 from training.export import FLOAT_COMPUTE_WEIGHTS, export, float_compute, mapping_keep, tracker_keep
 from training.model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
@@ -43,13 +44,14 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
         x, y = hip_heading_samples(clips[:2])
         assert y.shape[1] == HIP_BINS and np.array_equal(y.sum(1), np.ones(len(y)))  # one bin per frame
         model, n_in, keep, name = HipHeadingNet(F.MAP_IN, HIP_BINS, 32), F.MAP_IN, slice(None), "hip_heading"
-    elif kind == "placement":  # the mapping's network, also on the clips played backwards (her outputs' loss)
-        x, y = mapping_samples(clips[:2])
-        xr, yr = mapping_samples(time_reverse(clips[:2]))
+    elif kind == "placement":  # the mapping's network and her own placement, also on the clips played backwards
+        x, y = placement_samples(clips[:2])
+        xr, yr = placement_samples(time_reverse(clips[:2]))
         w = np.ones((512, 2, len(MappingNet.GROUPS)), dtype=np.float32)
         w[256:] = T.REVERSE_WEIGHTS["follower"]
         x, y = np.concatenate([x[:256], xr[:256]]), np.concatenate([y[:256], yr[:256]])
-        model, n_in, keep, name = MappingNet(F.MAP_IN, F.MAP_OUT, 32), F.MAP_IN, mapping_keep(), "placement"
+        x = noisy_placement_state(x, np.random.default_rng(0), 0.4, 0.5)
+        model, n_in, keep, name = MappingNet(F.PLACE_IN, F.MAP_OUT, 32), F.PLACE_IN, mapping_keep(), "placement"
     else:
         x, y, _ = tracking_samples(clips[:2], "leader")
         cls = TrackingNet if kind == "tracker" else VanillaTracker
@@ -248,19 +250,47 @@ def _check_float_compute(tmp_path, qpath, xb, want, float_model):
         float_compute(str(tmp_path / "mapping.onnx"))  # the float export
 
 
+def test_placement_samples_see_her_own_past_roots(clips):
+    """The placement network's input: the mapping's, then her true roots at
+    ``PLACEMENT_LAGS`` frames back in the leader's current root frame (their
+    distance is the couple's real distance on that frame); the noisy copies move
+    only that state, each sample's roots together, and keep the headings unit."""
+    c = clips[0]
+    x, y = placement_samples([c])
+    xm, ym = mapping_samples([c])
+    assert x.shape == (len(xm), F.PLACE_IN) and np.array_equal(x[:, :F.MAP_IN], xm) and np.array_equal(y, ym)
+    state = x[:, F.MAP_IN:].reshape(len(x), len(F.PLACEMENT_LAGS), 4)
+    t = np.arange(len(x))
+    for k, lag in enumerate(F.PLACEMENT_LAGS):
+        her, his = c.follower.roots[np.maximum(t - lag, 0)], c.leader.roots[t]
+        real = np.hypot(*(her[:, :2] - his[:, :2]).T)
+        assert np.allclose(np.hypot(*state[:, k, :2].T), real, atol=1e-5)
+    assert 0.3 < np.median(np.hypot(*state[:, 0, :2].T)) < 1.5  # metres: a couple, not one body
+    noisy = noisy_placement_state(x, np.random.default_rng(1), 0.4, 0.5)
+    assert np.array_equal(noisy[:, :F.MAP_IN], x[:, :F.MAP_IN])
+    moved = noisy[:, F.MAP_IN:].reshape(state.shape) - state
+    assert 0.05 < np.abs(moved[:, :, :2]).mean() < 0.4
+    # one offset per sample (plus 2 cm per root): the lags move together
+    assert np.abs(moved[:, 0, :2] - moved[:, 2, :2]).mean() < 0.05
+    heads = noisy[:, F.MAP_IN:].reshape(state.shape)[:, :, 2:]
+    assert np.allclose(np.hypot(heads[..., 0], heads[..., 1]), 1.0, atol=1e-5)
+
+
 def test_train_command_trains_and_reexports_the_placement_network(salsa_dir, tmp_path):
-    """``python -m training.train --only placement`` (tiny configuration, fit
-    split): only ``placement.onnx`` and the report are written, with its kind,
-    the backwards recipe in its training figures and a note of what the runtime
-    reads; its checkpoint re-exports through ``training.export`` to the same
-    network and metadata."""
+    """``python -m training.train --only placement --placement-state`` (tiny
+    configuration, fit split): only ``placement.onnx`` and the report are written,
+    with its kind, the backwards recipe and the noisy copies of her placement in
+    its training figures, a note of what the runtime reads and feeds
+    (``state_lags``); its checkpoint re-exports through ``training.export`` to
+    the same network and metadata. (Without ``--placement-state``: the shipped
+    recipe, which ``models/placement.onnx`` is.)"""
     import onnx as _onnx
 
     from training import export as X
 
     out, cache, again = tmp_path / "m", tmp_path / "cache", tmp_path / "again"
-    assert T.main(["--data", str(salsa_dir), "--config", "tiny", "--only", "placement", "--split", "fit",
-                   "--out", str(out), "--cache", str(cache)]) == 0
+    assert T.main(["--data", str(salsa_dir), "--config", "tiny", "--only", "placement", "--placement-state",
+                   "--split", "fit", "--out", str(out), "--cache", str(cache)]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["placement.onnx", "training_report.json"]
     report = json.loads((out / "training_report.json").read_text())
     assert set(report["models"]) == {"placement"} and report["models"]["placement"]["reverse"] == "follower"
@@ -271,7 +301,11 @@ def test_train_command_trains_and_reexports_the_placement_network(salsa_dir, tmp
     assert X.main(["--checkpoints", str(cache / "checkpoints"), "--out", str(again), "--names", "placement"]) == 0
     meta2 = {p.key: p.value for p in _onnx.load(str(again / "placement.onnx")).metadata_props}
     assert meta2["kind"] == "placement" and meta2["outputs"] == meta["outputs"]
-    x = np.random.default_rng(0).standard_normal((4, F.MAP_IN)).astype(np.float32)
+    assert meta2["state_lags"] == meta["state_lags"]
+    assert report["models"]["placement"]["copies"] == 2 and report["models"]["placement"]["state_noise"] == [0.4, 0.5]
+    assert json.loads(meta["state_lags"]) == list(F.PLACEMENT_LAGS) and "her roots" in meta["inputs"]
+    assert json.loads(meta["layout"])["place_in"] == F.PLACE_IN
+    x = np.random.default_rng(0).standard_normal((4, F.PLACE_IN)).astype(np.float32)
     a, b = (ort.InferenceSession(str(d / "placement.onnx"), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
             for d in (out, again))
     assert a.shape == (4, F.MAP_OUT) and np.allclose(a, b, atol=1e-5)

@@ -52,6 +52,41 @@ def mapping_samples(clips):
     return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
 
 
+def placement_samples(clips):
+    """The placement network's samples: the mapping's (:func:`mapping_samples`)
+    with her true roots at ``PLACEMENT_LAGS`` frames back (clamped at the clip's
+    start) relative to the leader's current root beside each input: ``x (n, PLACE_IN)``,
+    ``y (n, MAP_OUT)``. Clean: :func:`noisy_placement_state` perturbs them."""
+    x, y = mapping_samples(clips)
+    states = []
+    for c in clips:
+        if c.follower is None:
+            continue
+        t = sample_times(c.n_frames)
+        lag = np.maximum(t[:, None] - np.array(F.PLACEMENT_LAGS)[None], 0)
+        states.append(F.placement_input(np.zeros((len(t), 0)), c.leader.roots[t], c.follower.roots[lag]))
+    return np.concatenate([x, np.concatenate(states).astype(np.float32)], axis=1), y
+
+
+def noisy_placement_state(x, rng, position_sd, heading_sd, jitter_sd=0.02):
+    """A copy of placement inputs ``x (n, PLACE_IN)`` whose state (her past roots)
+    is moved as a whole by a random offset and turn (each sample a uniform share of
+    ``position_sd`` m and ``heading_sd`` rad, from clean to the full draw), plus
+    ``jitter_sd`` m of noise per root: at run time the state is her own placement,
+    never her true one, and the network must read the leader's lead beside it."""
+    x = np.array(x, dtype=np.float32, copy=True)
+    n, k = len(x), len(F.PLACEMENT_LAGS)
+    s = x[:, F.MAP_IN:].reshape(n, k, 4).astype(np.float64)
+    share = rng.uniform(0.0, 1.0, (n, 1))
+    s[:, :, :2] += (rng.normal(0.0, position_sd, (n, 2)) * share)[:, None]
+    s[:, :, :2] += rng.normal(0.0, jitter_sd, (n, k, 2))
+    turn = rng.normal(0.0, heading_sd, (n, 1)) * share
+    c, si = s[:, :, 2].copy(), s[:, :, 3].copy()
+    s[:, :, 2], s[:, :, 3] = c * np.cos(turn) - si * np.sin(turn), si * np.cos(turn) + c * np.sin(turn)
+    x[:, F.MAP_IN:] = s.reshape(n, -1)
+    return x
+
+
 def _duet_frames(clips, target):
     """The mapping input at every frame of the duet clips, with ``target(clip)``
     ``(n, k)`` beside it (the networks on the mapping's input)."""

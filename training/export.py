@@ -245,7 +245,8 @@ def main(argv=None):
         ck = torch.load(os.path.join(args.checkpoints, f"{name}.pt"), weights_only=False)
         meta = dict(ck["meta"])
         if name in WHOLE_FUTURE:
-            m, n_in, kind = MappingNet(F.MAP_IN, F.MAP_OUT, meta["hidden"]), F.MAP_IN, name
+            n_in = F.PLACE_IN if "state_lags" in meta else F.MAP_IN  # (her own placement beside the lead)
+            m, kind = MappingNet(n_in, F.MAP_OUT, meta["hidden"]), name
         elif name == "contacts":
             m, n_in, kind = ContactNet(F.MAP_IN, hidden=meta["hidden"], layers=meta["layers"]), F.MAP_IN, "contacts"
         elif name == "pose_anchor":

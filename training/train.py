@@ -31,7 +31,8 @@ from dancing_points_addon.nets import MODEL_FILES
 from training.dataset import load_clips
 
 from .data import (anchor_samples, contact_samples, default_pose, floor_levels_of, hip_heading_samples,
-                   mapping_samples, rollout_states, time_reverse, time_warp, tracking_samples)
+                   mapping_samples, noisy_placement_state, placement_samples, rollout_states, time_reverse,
+                   time_warp, tracking_samples)
 from .export import export
 from .model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
@@ -145,6 +146,14 @@ def main(argv=None):
     ap.add_argument("--placement-reverse", choices=tuple(REVERSE_WEIGHTS), default="follower",
                     help="the placement network (the mapping's recipe, her roots read from it): the clips played "
                          "backwards weighted as --map-reverse's choices (default follower, shipped)")
+    ap.add_argument("--placement-state", action="store_true",
+                    help="the placement network also sees her own placement (her roots at features.PLACEMENT_LAGS "
+                         "frames back; measured, not shipped: models/README.md)")
+    ap.add_argument("--placement-state-noise", default="0.4,0.5",
+                    help="with --placement-state: the largest offset (m) and turn (rad) of the noisy copies of her "
+                         "placement it sees (each sample a uniform share of a draw)")
+    ap.add_argument("--placement-copies", type=int, default=2,
+                    help="with --placement-state: noisy copies of the samples (its epochs divided by as many)")
     ap.add_argument("--placement-timewarp", default=None,
                     help="the placement network: also on the clips replayed at these speeds, each also played "
                          "backwards, e.g. 0.9,1.1 (measured in session 16, not shipped: models/README.md)")
@@ -212,26 +221,42 @@ def main(argv=None):
         map_clips = clips
         if timewarp:
             map_clips = clips + time_warp(clips, [float(r) for r in timewarp.split(",")])
-        x, y = mapping_samples(map_clips)
+        samples = placement_samples if name == "placement" and args.placement_state else mapping_samples
+        x, y = samples(map_clips)
         w = None
         if reverse != "none":  # the clips played backwards, their outputs' groups weighted 0 or 1
-            xr, yr = mapping_samples(time_reverse(map_clips))
+            xr, yr = samples(time_reverse(map_clips))
             w = np.ones((len(x) + len(xr), 2, len(MappingNet.GROUPS)), dtype=np.float32)
             w[len(x):] = REVERSE_WEIGHTS[reverse]
             x, y = np.concatenate([x, xr]), np.concatenate([y, yr])
+        copies, state_noise = 1, None
+        if name == "placement" and args.placement_state:  # her own placement beside the lead, noisy copies
+            copies = args.placement_copies
+            state_noise = [float(v) for v in args.placement_state_noise.split(",")]
+            rng = np.random.default_rng(args.seed)
+            x = np.concatenate([noisy_placement_state(x, rng, *state_noise) for _ in range(copies)])
+            y = np.concatenate([y] * copies)
+            w = None if w is None else np.concatenate([w] * copies)
         log(f"{name}: {x.shape} -> {y.shape}")
         noise = 0.1 if args.map_noise is None else args.map_noise
         dropout = 0.1 if args.map_dropout is None else args.map_dropout
-        epochs = args.map_epochs or cfg["map_epochs"]
+        epochs = max(1, (args.map_epochs or cfg["map_epochs"]) // copies)  # the same number of steps
         hidden = args.map_hidden or cfg["map_hidden"]
         wd = 1e-4 if args.map_wd is None else args.map_wd
-        m = MappingNet(F.MAP_IN, F.MAP_OUT, hidden, noise=noise, dropout=dropout, loss=args.map_loss)
+        n_in = x.shape[1]
+        m = MappingNet(n_in, F.MAP_OUT, hidden, noise=noise, dropout=dropout, loss=args.map_loss)
         info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed, weight_decay=wd, w=w)
         info.update(noise=noise, dropout=dropout, weight_decay=wd, timewarp=timewarp, loss=args.map_loss,
                     reverse=reverse)
-        extra = {} if name == "mapping" else {
-            "outputs": "the mapping's layout; the runtime reads the follower's roots (position, heading) only"}
-        export(m, name, os.path.join(args.out, f"{name}.onnx"), F.MAP_IN,
+        extra = {}
+        if name == "placement":
+            info.update(copies=copies, state_noise=state_noise)
+            extra = {"outputs": "the mapping's layout; the runtime reads the follower's roots (position, heading) "
+                                "only"}
+            if args.placement_state:  # (the runtime feeds her own roots when it finds state_lags)
+                extra.update(inputs="the mapping's input, then her roots at state_lags frames back relative to the "
+                                    "leader's current root", state_lags=list(F.PLACEMENT_LAGS))
+        export(m, name, os.path.join(args.out, f"{name}.onnx"), n_in,
                {"hidden": hidden, "train": info, **extra, **split_meta}, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"),
                         {"hidden": hidden, **extra, **split_meta})
