@@ -78,8 +78,8 @@ def layout() -> dict:
     """Feature layout, written into the ONNX metadata."""
     return {"fps": FPS, "past": PAST, "future": FUTURE, "track_keys": TRACK_KEYS.tolist(),
             "map_in": MAP_IN, "map_out": MAP_OUT, "place_in": PLACE_IN, "placement_lags": list(PLACEMENT_LAGS),
-            "track_in": TRACK_IN, "track_out": TRACK_OUT, "key_out": KEY_OUT, "pose_dim": POSE_DIM, "rotation": "6d (first two columns)",
-            "root": "(x, z, cos, sin), heading from +Z towards +X"}
+            "track_in": TRACK_IN, "track_out": TRACK_OUT, "key_out": KEY_OUT, "pose_dim": POSE_DIM,
+            "rotation": "6d (first two columns)", "root": "(x, z, cos, sin), heading from +Z towards +X"}
 
 
 def mapping_input(roots: np.ndarray, tracked: np.ndarray) -> np.ndarray:

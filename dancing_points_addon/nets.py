@@ -163,6 +163,14 @@ def check_models(model_dir=None, threads: int = 1) -> str:
                 raise ModelError(f"{path}: gives {n_out} outputs, the contact network needs 8")
             if contact_floor_levels(net.meta) is None:
                 raise ModelError(f"{path}: no floor_levels (four numbers per dancer) in its metadata")
+        if kind == "placement" and "state_lags" in net.meta:
+            try:
+                lags = json.loads(net.meta["state_lags"])
+            except ValueError:
+                lags = None
+            if lags != list(F.PLACEMENT_LAGS):
+                raise ModelError(f"{path}: sees her placement {net.meta['state_lags']} frames back, this version "
+                                 f"feeds {list(F.PLACEMENT_LAGS)}")
         if kind in ("mapping", "placement"):
             n_out = net.session.get_outputs()[0].shape[-1]
             if isinstance(n_out, int) and n_out != want["map_out"]:

@@ -709,6 +709,28 @@ def test_placement_network_sees_her_own_placement(state_placement):
     assert np.isfinite(duet.follower_positions).all()
 
 
+def test_check_models_takes_a_placement_network_that_sees_her(state_placement, tmp_path):
+    """``nets.check_models`` takes a models folder whose placement network sees her
+    placement (207 inputs, ``state_lags``) and refuses one made for other lags."""
+    import os
+    import shutil
+
+    import onnx
+
+    from dancing_points_addon.errors import UserError
+    from dancing_points_addon.nets import MODEL_FILES, check_models
+
+    for f in MODEL_FILES.values():
+        shutil.copy(os.path.join(MODEL_DIR, f), tmp_path / f)
+    shutil.copy(state_placement.path, tmp_path / "placement.onnx")
+    assert check_models(str(tmp_path)) == str(tmp_path)
+    m = onnx.load(str(tmp_path / "placement.onnx"))
+    next(p for p in m.metadata_props if p.key == "state_lags").value = "[1, 5, 10]"
+    onnx.save(m, str(tmp_path / "placement.onnx"))
+    with pytest.raises(UserError, match=r"placement\.onnx: sees her placement \[1, 5, 10\] frames back"):
+        check_models(str(tmp_path))
+
+
 def test_splice_takes_her_roots_only():
     """``features.splice_follower_roots``: decoded, the spliced output has the
     placement network's roots of her (position and heading, every future frame)
