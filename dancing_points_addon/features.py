@@ -11,8 +11,9 @@ Mapping network (paper §4.3)
             three tracked points in that frame's own root (9)      -> 30 × 26 = 780
 
 Placement network (issue 13)
-    input   the mapping's input and her roots at ``PLACEMENT_LAGS`` frames back,
-            relative to the leader's current root (3 × 4)         -> 195 + 12 = 207
+    input   the mapping's (195); trained with ``--placement-state`` (measured, not
+            shipped), also her roots at ``PLACEMENT_LAGS`` frames back relative
+            to the leader's current root (3 × 4)                  -> 195 + 12 = 207
     output  the mapping's layout (780); the runtime reads her roots from it
 
 Tracking network (paper §4.2), one dancer
@@ -43,9 +44,9 @@ FRAME_POINTS = slice(ROOT_DIM, FRAME_DIM)
 
 MAP_IN = PAST * FRAME_DIM
 MAP_OUT = FUTURE * 2 * FRAME_DIM
-# The placement network (issue 13) sees the mapping's input and her own placement: her roots at
-# these frames back (t − 1, t − 6, t − 11: the runtime's state, her output so far) relative to the
-# leader's current root
+# A placement network trained with ``train --placement-state`` also sees her own placement: her
+# roots at these frames back (t − 1, t − 6, t − 11: at run time her output so far) relative to the
+# leader's current root (its metadata's ``state_lags``)
 PLACEMENT_LAGS = (1, 6, 11)
 PLACE_IN = MAP_IN + ROOT_DIM * len(PLACEMENT_LAGS)
 POSE_DIM = N_JOINTS * 3 + N_JOINTS * 6 + 4
