@@ -78,7 +78,7 @@ def pose_rotations(pose: np.ndarray) -> np.ndarray:
 def layout() -> dict:
     """Feature layout, written into the ONNX metadata."""
     return {"fps": FPS, "past": PAST, "future": FUTURE, "track_keys": TRACK_KEYS.tolist(),
-            "map_in": MAP_IN, "map_out": MAP_OUT, "place_in": PLACE_IN, "placement_lags": list(PLACEMENT_LAGS),
+            "map_in": MAP_IN, "map_out": MAP_OUT, "place_in": PLACE_IN,
             "track_in": TRACK_IN, "track_out": TRACK_OUT, "key_out": KEY_OUT, "pose_dim": POSE_DIM,
             "rotation": "6d (first two columns)", "root": "(x, z, cos, sin), heading from +Z towards +X"}
 
@@ -95,12 +95,17 @@ def mapping_input(roots: np.ndarray, tracked: np.ndarray) -> np.ndarray:
     return out.reshape(B, MAP_IN)
 
 
+def placement_state(lead_root_t: np.ndarray, her_roots: np.ndarray) -> np.ndarray:
+    """Her roots ``(B, len(PLACEMENT_LAGS), 4)`` (world, at :data:`PLACEMENT_LAGS`)
+    relative to the leader's current root ``(B, 4)`` -> ``(B, PLACE_IN - MAP_IN)``."""
+    lead_root_t = np.asarray(lead_root_t)
+    return root_relative(lead_root_t[:, None], np.asarray(her_roots)).reshape(len(lead_root_t), -1)
+
+
 def placement_input(x: np.ndarray, lead_root_t: np.ndarray, her_roots: np.ndarray) -> np.ndarray:
-    """The placement network's input: the mapping input ``x (B, MAP_IN)`` and her
-    roots ``(B, len(PLACEMENT_LAGS), 4)`` (world, at :data:`PLACEMENT_LAGS`) relative
-    to the leader's current root ``(B, 4)`` -> ``(B, PLACE_IN)``."""
-    state = root_relative(np.asarray(lead_root_t)[:, None], np.asarray(her_roots)).reshape(len(x), -1)
-    return np.concatenate([x, state.astype(x.dtype)], axis=1)
+    """The placement network's input: the mapping input ``x (B, MAP_IN)`` and
+    :func:`placement_state` -> ``(B, PLACE_IN)``."""
+    return np.concatenate([x, placement_state(lead_root_t, her_roots).astype(x.dtype)], axis=1)
 
 
 def _dancer_future(ref, roots, tracked):

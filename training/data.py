@@ -64,7 +64,7 @@ def placement_samples(clips):
             continue
         t = sample_times(c.n_frames)
         lag = np.maximum(t[:, None] - np.array(F.PLACEMENT_LAGS)[None], 0)
-        states.append(F.placement_input(np.zeros((len(t), 0)), c.leader.roots[t], c.follower.roots[lag]))
+        states.append(F.placement_state(c.leader.roots[t], c.follower.roots[lag]))
     return np.concatenate([x, np.concatenate(states).astype(np.float32)], axis=1), y
 
 
