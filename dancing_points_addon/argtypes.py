@@ -89,6 +89,59 @@ def height_metres(text: str) -> float:
     return v
 
 
+def offset_metres(text: str) -> tuple:
+    """``x,y,z`` in metres (a body offset: each within half a metre)."""
+    parts = text.split(",")
+    try:
+        v = tuple(float(p) for p in parts)
+    except ValueError:
+        v = ()
+    if len(v) != 3 or not all(math.isfinite(c) for c in v):
+        raise argparse.ArgumentTypeError(f"must be three numbers x,y,z in metres, got {text!r}")
+    if max(abs(c) for c in v) > 0.5:
+        raise argparse.ArgumentTypeError(f"must be within 0.5 m on each axis, got {text!r}")
+    return v
+
+
+def floor_metres(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and abs(v) <= 1.0):
+        raise argparse.ArgumentTypeError(f"must be a height in metres within ±1, got {text!r}")
+    return v
+
+
+def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
+    """How a take is read (SPEC §3, §7): its devices, the floor, the wearer's body
+    offsets, and whether the head and hands follow the devices. Each overrides
+    the take's own metadata; ``--height`` is added with the input options."""
+    p.add_argument("--devices", choices=("joints", "openxr"), default=None,
+                   help="what the take's poses are: the SPEC §2 points (joints) or a headset's view and "
+                        "controllers' grip poses (openxr); default: the take's devices, else joints")
+    p.add_argument("--floor-y", type=floor_metres, default=None, metavar="Y",
+                   help="height of the real floor in the take's frame, metres (default: the take's floor_y, "
+                        "else estimated when the height is known, else 0)")
+    p.add_argument("--head-offset", type=offset_metres, default=None, metavar="X,Y,Z",
+                   help="openxr: the base of the skull from the view pose, in its axes (x right, y up, "
+                        "z back), metres (default: 0,-0.075,0.08 for a 1.70 m wearer, scaled)")
+    p.add_argument("--hand-offset", type=offset_metres, default=None, metavar="X,Y,Z",
+                   help="openxr: the left wrist from its grip pose, in the grip's axes (the right hand's is its "
+                        "mirror image), metres (default: -0.025,0.07,0 for a 1.70 m wearer, scaled)")
+    p.add_argument("--no-device-follow", action="store_true",
+                   help="leave the head and hands turned as the network has them (default: as the devices are)")
+
+
+def calibration_options(o) -> dict:
+    """The :class:`~.runtime.SynthesisOptions` fields of :func:`add_calibration_arguments`'
+    options (parsed arguments or a batch job's dict)."""
+    get = o.get if isinstance(o, dict) else (lambda k, d=None: getattr(o, k, d))
+    tup = lambda v: None if v is None else tuple(float(c) for c in v)  # noqa: E731
+    return {"devices": get("devices"), "floor_y": get("floor_y"), "head_offset": tup(get("head_offset")),
+            "hand_offset": tup(get("hand_offset")), "follow_devices": not get("no_device_follow", False)}
+
+
 def exit_for(exc: BaseException, err=None, debug: bool = False) -> int:
     """Print the one line of a command that ended with ``exc`` on ``err``
     (stderr) and return its exit status: 2 for a :class:`UserError`, 130 for

@@ -25,8 +25,8 @@ import os
 import signal
 import threading
 
-from .argtypes import (EXIT_OK, Parser, Terminated, exit_for, height_metres, positive_float, positive_int,
-                       printable, thread_count)
+from .argtypes import (EXIT_OK, Parser, Terminated, add_calibration_arguments, calibration_options, exit_for,
+                       height_metres, offset_metres, positive_float, positive_int, printable, thread_count)
 from .errors import InputError
 
 
@@ -43,7 +43,8 @@ def add_input_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--asf", default=None, metavar="PATH",
                    help="ASF skeleton of an AMC input (default: found beside it)")
     p.add_argument("--height", type=height_metres, default=None, metavar="H",
-                   help="the leader's height in metres (stored as height_m)")
+                   help="the tracked dancer's standing height in metres (stored as height_m; default: the "
+                        "take's, else estimated from the take)")
 
 
 def check_output_path(path) -> None:
@@ -84,7 +85,15 @@ def cmd_extract(args) -> int:
 
     check_output_path(args.output)
     check_not_input(args, [args.output])
-    take = load_input_from_args(args)
+    if args.devices == "openxr":
+        from .formats.devices import offsets_for
+        from .formats.inputs import load_headset_input
+
+        offsets = offsets_for({}, args.head_offset, args.hand_offset)
+        take = load_headset_input(args.input, asf=args.asf, input_fps=args.input_fps, height=args.height,
+                                  offsets=offsets)
+    else:
+        take = load_input_from_args(args)
     write_take(args.output, take)
     dur = float(take.time[-1] - take.time[0])
     rate = (take.n_frames - 1) / dur if dur > 0 else float("nan")
@@ -100,6 +109,15 @@ def _parser_extract(sub) -> None:
     add_input_arguments(p)
     p.add_argument("-o", "--output", required=True, metavar="TAKE.csv",
                    help="output take file (an existing file is replaced; never the input)")
+    p.add_argument("--devices", choices=("joints", "openxr"), default="joints",
+                   help="joints: the SPEC §2 points (default); openxr: as a headset and two controllers record "
+                        "the dancer (view pose, grip poses), placed with the body offsets below")
+    p.add_argument("--head-offset", type=offset_metres, default=None, metavar="X,Y,Z",
+                   help="openxr: the base of the skull from the view pose (default: 0,-0.075,0.08 for a 1.70 m "
+                        "dancer, scaled)")
+    p.add_argument("--hand-offset", type=offset_metres, default=None, metavar="X,Y,Z",
+                   help="openxr: the left wrist from its grip pose, the right's mirrored (default: "
+                        "-0.025,0.07,0 for a 1.70 m dancer, scaled)")
     p.set_defaults(func=cmd_extract)
 
 
@@ -125,8 +143,10 @@ def cmd_synthesize(args) -> int:
     t0 = time.perf_counter()
     check_models(args.models, args.threads)  # --models, else $DP_MODEL_DIR, else the bundled ones
     synth = Synthesizer(SynthesisOptions(models=args.models, threads=args.threads, height=args.height or take.height,
-                                         foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik))
+                                         foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik,
+                                         **calibration_options(args)))
     duet = synth.synthesize(take)
+    print(printable(f"{take.source}: {duet.calibration.describe()}"))
     if ext == ".npz":
         save_npz(duet, out)
     else:
@@ -159,6 +179,7 @@ def _parser_synthesize(sub) -> None:
     p.add_argument("--no-foot-lock", action="store_true", help="turn contact-based foot locking off")
     p.add_argument("--no-hand-ik", action="store_true",
                    help="leave the leader's head and wrists where the network puts them (no IK onto the input)")
+    add_calibration_arguments(p)
     p.set_defaults(func=cmd_synthesize)
 
 

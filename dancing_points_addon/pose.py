@@ -16,8 +16,9 @@ from math import atan2, cos, sin, sqrt
 
 import numpy as np
 
+from .ik import two_bone_ik
 from .representation import dot3, norm
-from .skeleton import HIPS, LOWER_BODY, PARENTS
+from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, PARENTS
 
 N = len(PARENTS)
 # ANCESTORS[n, k] = 1 when bone k lies on the chain from the root to bone n (k != root)
@@ -195,3 +196,38 @@ def clamp_twist(rotations, rest_dir, left, right, limits):
     if changed:
         rotations[changed] = np.reshape([R[b] for b in changed], (-1, 3, 3))
     return rotations
+
+
+# A foot point may sink at most this far below its floor level (its height
+# standing, the contact network's ``floor_levels``) before its leg is bent to
+# lift it: the feet never go through the floor.
+FLOOR_MARGIN = 0.025
+
+
+class FloorGuard:
+    """Keep a pose's feet on or above the floor (in place, per frame): where
+    the ankle, the ball or the toe tip of a leg is lower than its floor level
+    (``levels``: ankle, ball, ankle, ball, as the contact points) less
+    ``margin``, the leg's knee bends (two-bone IK from the hip) to lift the
+    ankle by the deficit; the foot moves with it, unturned."""
+
+    def __init__(self, levels, margin: float = FLOOR_MARGIN):
+        lv = [float(v) - margin for v in levels]
+        J = JOINT_INDEX
+        self.legs = [((J[s + "hipjoint"], J[s + "femur"], J[s + "tibia"], J[s + "foot"], J[s + "toes"]),
+                      (lv[2 * i], lv[2 * i + 1])) for i, s in enumerate("lr")]
+
+    def __call__(self, positions, rotations):
+        for (hip, femur, tibia, foot, toes), (la, lb) in self.legs:
+            ya, yb, yt = positions[tibia, 1], positions[foot, 1], positions[toes, 1]
+            lift = max(la - ya, lb - yb, lb - yt)
+            if not lift > 0.0:
+                continue
+            ankle = positions[tibia]
+            knee, new_ankle, r1, r2 = two_bone_ik(positions[hip], positions[femur], ankle, ankle + (0.0, lift, 0.0))
+            move = new_ankle - ankle
+            positions[femur], positions[tibia] = knee, new_ankle
+            positions[[foot, toes]] += move
+            rotations[femur] = r1 @ rotations[femur]
+            rotations[tibia] = r2 @ rotations[tibia]
+        return positions, rotations

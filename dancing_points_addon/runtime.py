@@ -19,28 +19,25 @@ from math import atan2, sqrt
 import numpy as np
 
 from . import features as F
+from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate, height_from_head
+from .device_follow import DeviceFollow, limit_rotation
 from .follower import FollowerOptions, HandHold, HipTwist, Placement, Separation, hip_heading_from_probs
+from .formats.devices import openxr_to_points
 from .nets import contact_floor_levels, load_nets
-from .pose import LEG_TWIST_DEG, LegJoints, PoseRecovery, bone_vectors_from_pose
+from .pose import LEG_TWIST_DEG, FloorGuard, LegJoints, PoseRecovery, bone_vectors_from_pose
 from .representation import (DEVICE_FROM_HEAD, blend_root, hip_frame, pose_to_world, root_compose, root_from_head,
                              root_relative, rot_to_local, to_local, to_world)
-from .rotations import quat_to_matrix_one
+from .rotations import quat_to_matrix_one, rotation_angle
 from .skeleton import FEET, HEAD_BONE, JOINT_INDEX, JOINT_NAMES, LOWER_BODY, TRACKED
 
-# Head height (end of `upperneck`, metres) of the training leader standing, and
-# the standing height it corresponds to: calibration uses their ratio.
-TRAIN_HEAD_HEIGHT = 1.50
-TRAIN_HEIGHT = 1.70
-CALIBRATION_FRAMES = 30  # the first second at 30 Hz
+CALIBRATION_FRAMES = 30  # live, without a calibration: the height is estimated over the first second
 KIN_HEIGHT, KIN_SPEED, KIN_FLOOR_RISE = 0.035, 1.5, 0.001  # kinematic contacts: m, m/s, m per frame
-
-
-def _head_scale(heights) -> float:
-    """Scale from head heights seen at the start: their 90th percentile (the
-    upright head, not a dip) against the training leader's, within the scales of
-    users 1.35–2.10 m tall."""
-    s = TRAIN_HEAD_HEIGHT / float(np.percentile(heights, 90))
-    return float(np.clip(s, TRAIN_HEIGHT / 2.10, TRAIN_HEIGHT / 1.35))
+DEFAULT_FLOOR_LEVELS = (0.07, 0.04, 0.07, 0.04)  # ankle, ball (m): without the contact network's levels
+# A device that comes back after a loss blends in from where its stand-in was: the gap
+# closes by this share a frame, at least RETURN_MIN and at most RETURN_MAX metres (or the
+# head's turn, RETURN_TURN radians): a hand 0.9 m off is back within 0.6 s, moving no
+# faster than the dancer plus 4 cm a frame.
+RETURN_RATE, RETURN_MIN, RETURN_MAX, RETURN_TURN = 0.3, 0.003, 0.04, 0.1
 
 
 @dataclass
@@ -71,16 +68,27 @@ class Duet:
     # ``contacts`` order), bool; None without foot locking. What the method view's discs show.
     # Not part of the SPEC §4 output (:meth:`arrays`).
     planted: np.ndarray | None = None
+    # How the take was read (devices, the tracked dancer's height, the floor): written
+    # beside the SPEC §4 arrays (:meth:`arrays`) so that a user sees what was estimated.
+    calibration: Calibration | None = None
 
     @property
     def n_frames(self):
         return len(self.time)
 
     def arrays(self) -> dict:
-        return {"fps": np.float64(self.fps), "time": self.time, "joint_names": np.array(JOINT_NAMES),
-                "leader_positions": self.leader_positions, "leader_rotations": self.leader_rotations,
-                "leader_contacts": self.leader_contacts, "follower_positions": self.follower_positions,
-                "follower_rotations": self.follower_rotations, "follower_contacts": self.follower_contacts}
+        """The SPEC §4 arrays, and the calibration (``height_m``, ``height_source``,
+        ``floor_y``, ``floor_source``, ``devices``) when known."""
+        out = {"fps": np.float64(self.fps), "time": self.time, "joint_names": np.array(JOINT_NAMES),
+               "leader_positions": self.leader_positions, "leader_rotations": self.leader_rotations,
+               "leader_contacts": self.leader_contacts, "follower_positions": self.follower_positions,
+               "follower_rotations": self.follower_rotations, "follower_contacts": self.follower_contacts}
+        c = self.calibration
+        if c is not None:
+            out.update(height_m=np.float64(c.height), height_source=np.array(c.height_source),
+                       floor_y=np.float64(c.floor_y), floor_source=np.array(c.floor_source),
+                       devices=np.array(c.devices))
+        return out
 
 
 class _Dancer:
@@ -177,11 +185,20 @@ class SynthesisOptions:
 
     ``models``: the folder of the networks (None: ``$DP_MODEL_DIR``, else the
     bundled ``models/``); ``threads``: ONNX Runtime threads; ``height``: the
-    leader's standing height in metres (None: the training leader's; "auto":
-    estimated from the take's first second); ``foot_lock``: contact-based foot
-    locking; ``hand_ik``: put the leader's head and wrists exactly on the input
+    tracked dancer's standing height in metres (None or "auto": the take's
+    ``height_m``, else estimated from the take, see :mod:`.calibration`);
+    ``floor_y``: where the real floor lies in the take (None: the take's
+    ``floor_y``, else estimated when the height is given, else y = 0);
+    ``devices``: what the take's poses are, SPEC §3 (None: the take's
+    ``devices``, else ``joints``); ``head_offset`` / ``hand_offset``: the
+    wearer's own body offsets for ``openxr`` devices (x, y, z metres; see
+    :mod:`.formats.devices`), or ``offsets``, all three at once (a
+    :class:`~.formats.devices.DeviceOffsets`); ``foot_lock``: contact-based foot locking;
+    ``hand_ik``: put the leader's head and wrists exactly on the input
     (two-bone arm IK, neck turn; on by default: it is what the paper scores,
-    and the measured full-body error falls from 13.8 to 8.3 cm).
+    and the measured full-body error falls from 13.8 to 8.3 cm);
+    ``follow_devices``: the tracked dancer's head and hands turn as the devices
+    do (:mod:`.device_follow`).
     """
 
     models: str | None = None
@@ -189,6 +206,12 @@ class SynthesisOptions:
     height: float | str | None = None
     foot_lock: bool = True
     hand_ik: bool = True
+    floor_y: float | None = None
+    devices: str | None = None
+    head_offset: tuple | None = None
+    hand_offset: tuple | None = None
+    offsets: object | None = None
+    follow_devices: bool = True
 
 
 # Each dancer's new root: the leader's is the one his head gives (his root cannot
@@ -227,7 +250,8 @@ class Synthesizer:
         if nets is None:
             nets = load_nets(options.models, options.threads)
         self.nets = nets
-        self.height = options.height
+        self.height = None if options.height in (None, "auto", "") else float(options.height)
+        self.calibration = None  # set by :meth:`synthesize` (or :meth:`set_calibration` for a live loop)
         self.foot_lock = options.foot_lock
         self.hand_ik = options.hand_ik
         self.follower_options = follower
@@ -270,6 +294,8 @@ class Synthesizer:
         # a placement network trained with ``train --placement-state`` also sees her own placement
         self._placement_state = self._placement_net and "state_lags" in getattr(nets["placement"], "meta", {})
         # the follower's arm lengths (shoulder to wrist), for hand holds
+        levels = self.floor_levels or {r: DEFAULT_FLOOR_LEVELS for r in ("leader", "follower")}
+        self._floor_guards = (FloorGuard(levels["leader"]), FloorGuard(levels["follower"]))
         bl = np.linalg.norm(self.bone_vectors["follower"], axis=-1)
         self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
                                    + bl[JOINT_INDEX[s + "wrist"]] for s in "lr"])
@@ -295,6 +321,15 @@ class Synthesizer:
         self.prev_leader_pred = None  # the mapping's prediction of the next frame (root, tracked local)
         self._head_heights = []
         self._calibration = None
+        self._prev_used = None  # the (tracked points, head rotation) used on the last frame
+        self._prev_valid = None
+        self._return = [None, None, None]  # per device: the gap left when it came back (a 3-vector)
+        self._return_turn = None  # the head's turn left when it came back (3, 3)
+        self._devices_now = (None, None, None)  # this frame's measured device rotations (head, hands)
+        devices = self.calibration.devices if self.calibration is not None else "joints"
+        self._follow = None
+        if self.options.follow_devices:
+            self._follow = DeviceFollow(self.bone_vectors["leader"], "hand" if devices == "openxr" else "wrist")
         self._prev_feet = [None, None]
         self._floor = [None, None]
         self._lockers = None
@@ -345,20 +380,27 @@ class Synthesizer:
             self._out_twist = np.radians(limits).tolist()
             self._leg_joints = self._leg_joints or LegJoints(self.bone_vectors["follower"])
 
+    def set_calibration(self, calibration: Calibration | None) -> None:
+        """Read the devices of :meth:`step` as ``calibration`` says (devices, height,
+        floor; :func:`~.calibration.calibrate`) from a fresh state; None: §2 points
+        on a floor at y = 0, the height as the options give it."""
+        self.calibration = calibration
+        self.reset()
+
     def scale(self) -> float:
-        """Tracker scale: training height over the user's (paper §7 calibration),
-        1 when no height is given. ``height="auto"`` estimates the user's head
-        height from the first second of the take (90th percentile; the live loop
-        uses the frames so far until then) and fixes the scale afterwards, so the
-        output skeleton keeps its size; a take that starts in a dip fools it."""
-        if self.height is None:
-            return 1.0
-        if self.height != "auto":
-            return TRAIN_HEIGHT / float(self.height)
+        """Tracker scale: training height over the user's (paper §7 calibration).
+        The calibration's height when there is one (:meth:`synthesize` makes
+        it, from the whole take), else the options' height; else (a live loop
+        without either) the heads seen so far, fixed after the first second so
+        that the output skeleton keeps its size."""
+        if self.calibration is not None:
+            return self.calibration.scale
+        if self.height is not None:
+            return TRAIN_HEIGHT / self.height
         if self._calibration is not None:
             return self._calibration
         if self._head_heights:
-            s = _head_scale(self._head_heights)
+            s = TRAIN_HEIGHT / height_from_head(self._head_heights)
             if len(self._head_heights) >= CALIBRATION_FRAMES:
                 self._calibration = s
             return s
@@ -393,17 +435,25 @@ class Synthesizer:
             head_pos, head_rot = self.last_valid
             root = root_from_head(head_pos, head_rot)
         else:
-            head_pos, head_rot = np.array([0.0, TRAIN_HEAD_HEIGHT, 0.0]), np.diag([-1.0, 1.0, -1.0])
+            head_pos = np.array([0.0, F.pose_positions(self.default_pose["leader"])[TRACKED[0], 1] * inv, 0.0])
+            head_rot = np.diag([-1.0, 1.0, -1.0])
             root = root_from_head(head_pos, head_rot)
         if valid[0]:
             self.last_valid = (head_pos, head_rot)
         tracked = np.array(positions, dtype=np.float64)  # rows of lost devices are replaced below
         if not valid[0]:
             tracked[0] = head_pos
+        if self._prev_used is not None and (valid[0] and not self._prev_valid[0] or self._return[0] is not None
+                                            or self._return_turn is not None):
+            tracked[0], head_rot = self._blend_head(tracked[0], head_rot, valid[0])
+            root = root_from_head(tracked[0], head_rot)
         for i in (1, 2):
             if valid[i]:
                 self.last_hand[i - 1] = (tracked[i].copy(), root)
+                if self._prev_used is not None and (not self._prev_valid[i] or self._return[i] is not None):
+                    tracked[i] = self._blend_point(i, tracked[i])
                 continue
+            self._return[i] = None
             if pred is not None:
                 local = pred[1][i] * inv
             elif self.last_hand[i - 1] is not None:
@@ -411,14 +461,67 @@ class Synthesizer:
             else:  # never seen: the default pose's hand
                 local = F.pose_positions(self.default_pose["leader"])[TRACKED[i]] * inv
             tracked[i] = to_world(local[None], root)[0]
+        self._prev_used = (tracked, head_rot)
+        self._prev_valid = tuple(bool(v) for v in valid)
         return tracked, head_rot, root
+
+    def _blend_point(self, i, real):
+        """Device ``i``'s point this frame: where it really is, plus what is left of
+        the gap to its stand-in when it came back (:data:`RETURN_RATE`)."""
+        gap = self._return[i]
+        if gap is None:  # it is back on this frame: the gap from last frame's stand-in
+            gap = self._prev_used[0][i] - real
+        n = float(np.sqrt(gap @ gap))
+        if n <= RETURN_MIN:
+            self._return[i] = None
+            return real
+        self._return[i] = gap * (1.0 - min(RETURN_MAX, max(RETURN_MIN, RETURN_RATE * n)) / n)
+        return real + self._return[i]
+
+    def _blend_head(self, head_pos, head_rot, valid):
+        """The head's point and rotation this frame, blended in after a loss like
+        the hands' (:meth:`_blend_point`), its turn too."""
+        if not valid:
+            self._return[0] = self._return_turn = None
+            return head_pos, head_rot
+        pos = self._blend_point(0, head_pos)
+        turn = self._return_turn
+        if turn is None:
+            turn = self._prev_used[1] @ head_rot.T
+        a = float(rotation_angle(turn))
+        if a <= 1e-3:
+            self._return_turn = None
+            return pos, head_rot
+        self._return_turn = limit_rotation(turn, a - min(RETURN_TURN, max(1e-3, RETURN_RATE * a)))
+        return pos, self._return_turn @ head_rot
 
     # -- one frame -------------------------------------------------------------
     def step(self, positions, quats, valid=(True, True, True)):
-        """One 30 Hz frame: device positions (3, 3), quaternions (3, 4) (w, x, y, z),
-        ``valid`` (3,) tracking flags. Returns (leader, follower) :class:`DuetFrame`."""
+        """One 30 Hz frame of the take's device poses: positions (3, 3),
+        quaternions (3, 4) (w, x, y, z), ``valid`` (3,) tracking flags, read as
+        :attr:`calibration` says (devices, floor; see :meth:`set_calibration`).
+        Returns (leader, follower) :class:`DuetFrame` in the take's frame."""
+        c = self.calibration
+        if c is None:
+            return self._frame(positions, quats, valid)
+        positions = np.array(positions, dtype=np.float64)
+        quats = np.asarray(quats, dtype=np.float64)
+        if c.devices == "openxr":
+            positions, quats = openxr_to_points(positions, quats, c.offsets.at(c.height))
+        positions[:, 1] -= c.floor_y
+        a, b = self._frame(positions, quats, valid)
+        if c.floor_y:
+            a.positions[:, 1] += c.floor_y
+            b.positions[:, 1] += c.floor_y
+        return a, b
+
+    def _frame(self, positions, quats, valid):
+        """:meth:`step` on §2 points above a floor at y = 0."""
         tracked, head_rot, root = self._clean(positions, quats, valid)
-        if valid[0] and self.height == "auto":
+        if self._follow is not None:  # what the devices measure this frame, for the head and hands to follow
+            self._devices_now = (head_rot if valid[0] else None,
+                                 *(quat_to_matrix_one(quats[i]) if valid[i] else None for i in (1, 2)))
+        if valid[0] and self.calibration is None and self.height is None:
             self._head_heights.append(tracked[0, 1])
         s = self.scale()
         tracked_s = tracked
@@ -530,12 +633,16 @@ class Synthesizer:
                 if who == 1 and fo is not None and fo.lock_floor >= 0:  # her new locks go on her floor
                     self._lockers[1].floor = [f + fo.lock_floor for f in self._floor[1]]
             pos, rot = self._lockers[who].step(pos, rot, contacts)
+        pos, rot = self._floor_guards[who](pos, rot)  # no foot through the floor
         if who == 1 and self._out_twist is not None:  # her thighs' twist within the real follower's
             pos, rot = self._leg_joints.twist(pos, rot, self._out_twist)
         if targets is not None:
             effector = self._effector if who == 0 else self._fol_effector
             if effector is not None:
                 pos, rot = effector.step(pos, rot, targets)
+        if who == 0 and self._follow is not None:  # his head and hands turned as the devices are
+            head, lh, rh = self._devices_now
+            pos, rot = self._follow.step(pos, rot, head, (lh, rh))
         return pos, rot
 
     def _hold_targets(self, leader_pos, follower_pos, l_tr, f_tr, l_roots, f_roots):
@@ -611,16 +718,22 @@ class Synthesizer:
         return np.concatenate([self.prev_follower[0][None], f_roots.take(self._OFF, axis=0)]), tracked
 
     # -- a whole take ----------------------------------------------------------
+    def calibrate(self, take) -> Calibration:
+        """The calibration of ``take`` under this synthesizer's options
+        (:func:`~.calibration.calibrate`)."""
+        o = self.options
+        return calibrate(take, height=self.height, floor_y=o.floor_y, devices=o.devices, offsets=o.offsets,
+                         head_offset=o.head_offset, hand_offset=o.hand_offset)
+
     def synthesize(self, take, progress=None) -> Duet:
-        """Resample ``take`` to 30 Hz and run :meth:`step` over it from a fresh state."""
+        """Calibrate ``take`` (its devices, the dancer's height, the floor:
+        :meth:`calibrate`), resample it to 30 Hz and run the frame loop over
+        it from a fresh state; the duet is in the take's frame."""
         from .resample import resample_take
 
-        tk = resample_take(take, F.FPS)
-        self.reset()
-        if self.height == "auto":  # calibrate on the take's first second before the loop
-            first = tk.valid[:CALIBRATION_FRAMES, 0]
-            if first.any():
-                self._calibration = _head_scale(tk.positions[:CALIBRATION_FRAMES, 0, 1][first])
+        calib = self.calibrate(take)
+        tk = resample_take(apply_calibration(take, calib), F.FPS)
+        self.set_calibration(calib)
         T = tk.n_frames
         out = {k: np.empty((T, 31, 3)) for k in ("lp", "fp")}
         out.update({k: np.empty((T, 31, 3, 3)) for k in ("lr", "fr")})
@@ -630,7 +743,7 @@ class Synthesizer:
         preds = np.empty((T, 2, F.FUTURE, 3, 3), dtype=np.float32) if record else None
         planted = np.zeros((T, 2, 4), dtype=bool) if self._lockers is not None else None
         for t in range(T):
-            a, b = self.step(tk.positions[t], tk.quats[t], valid[t])
+            a, b = self._frame(tk.positions[t], tk.quats[t], valid[t])
             if record:
                 preds[t] = self.last_prediction
             if planted is not None:
@@ -640,8 +753,13 @@ class Synthesizer:
             if progress is not None and (t % 30 == 0 or t == T - 1):
                 if progress(t + 1, T) is False:
                     raise KeyboardInterrupt("cancelled")
+        if calib.floor_y:  # back onto the take's floor
+            for k in ("lp", "fp"):
+                out[k][..., 1] += calib.floor_y
+            if preds is not None:
+                preds[..., 1] += np.float32(calib.floor_y)
         return Duet(tk.time, out["lp"], out["lr"], out["lc"], out["fp"], out["fr"], out["fc"],
-                    bone_vectors=self.output_bone_vectors(), predictions=preds, planted=planted)
+                    bone_vectors=self.output_bone_vectors(), predictions=preds, planted=planted, calibration=calib)
 
 
 def save_npz(duet: Duet, path) -> None:

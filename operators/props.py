@@ -36,10 +36,29 @@ class DP_CollectionSettings(bpy.types.PropertyGroup):
     source: StringProperty(name="Source", description="File the take was imported from", subtype='FILE_PATH')
     source_type: StringProperty(name="Source Type", description="csv, amc, bvh or fbx")
     height: FloatProperty(
-        name="Leader Height",
-        description="Standing height of the leading dancer, for calibration (0: estimate from the head height)",
+        name="Dancer Height",
+        description="Standing height of the tracked dancer, for calibration (0: estimate it from the take)",
         default=0.0, min=0.0, soft_max=2.5, unit='LENGTH', precision=3,
     )
+    devices: EnumProperty(
+        name="Devices", default='joints',
+        description="What the take's three poses are (SPEC §3 devices)",
+        items=(('joints', "Joints", "The head and wrist points of a full-body motion"),
+               ('openxr', "OpenXR", "A headset's view pose and two controllers' grip poses")),
+    )
+    use_floor_y: BoolProperty(name="Floor Given", default=False,
+                              description="The real floor's height in the take is known (else: estimated when "
+                                          "the height is given, else 0)")
+    floor_y: FloatProperty(name="Floor Height", default=0.0, soft_min=-0.5, soft_max=0.5, unit='LENGTH', precision=3,
+                           description="Height of the real floor in the take's frame (a headset's floor "
+                                       "calibration can be off by centimetres)")
+    # what the last synthesis used (read only: shown in the panel)
+    height_used: FloatProperty(name="Height Used", default=0.0, unit='LENGTH', precision=3,
+                               description="The tracked dancer's height the last synthesis used")
+    height_source: StringProperty(name="Height Source", description="given, estimated or assumed")
+    floor_used: FloatProperty(name="Floor Used", default=0.0, unit='LENGTH', precision=3,
+                              description="The floor height the last synthesis used")
+    floor_source: StringProperty(name="Floor Source", description="given, estimated or assumed")
     input_fps: FloatProperty(name="Input FPS", description="Frame rate override used at import (0: the file's)",
                              default=0.0, min=0.0)
     source_fps: FloatProperty(name="Source FPS", description="Frame rate of the imported file", default=0.0)
@@ -74,6 +93,8 @@ class DP_SceneSettings(bpy.types.PropertyGroup):
     )
     foot_lock: BoolProperty(name="Foot Locking", default=True,
                             description="Pin feet in contact with the floor (contact-based IK)")
+    follow_devices: BoolProperty(name="Follow Devices", default=True,
+                                 description="Turn the tracked dancer's head and hands as the devices are turned")
     hand_ik: BoolProperty(name="Hand IK", default=True,
                           description="Put the leader's head and wrists exactly on the tracked points")
     preview_format: EnumProperty(

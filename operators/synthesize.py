@@ -69,6 +69,8 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
                             description="Pin feet in contact with the floor (contact-based IK)")
     hand_ik: BoolProperty(name="Hand IK", default=True,
                           description="Put the leader's head and wrists exactly on the tracked points")
+    follow_devices: BoolProperty(name="Follow Devices", default=True,
+                                 description="Turn the tracked dancer's head and hands as the devices are turned")
     model_dir: StringProperty(name="Model Folder", subtype='DIR_PATH', options={'HIDDEN', 'SKIP_SAVE'},
                               description="Folder with the ONNX models (empty: $DP_MODEL_DIR, the "
                                           "preferences, else the bundled models)")
@@ -89,7 +91,8 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
         prefs = _preferences(context)
         threads = int(getattr(prefs, "onnx_threads", 1)) if prefs else 1
         synth = make_synthesizer(SynthesisOptions(models=model_dir_choice(context, self.model_dir), threads=threads,
-                                                  height=take.height, foot_lock=self.foot_lock, hand_ik=self.hand_ik))
+                                                  height=take.height, foot_lock=self.foot_lock, hand_ik=self.hand_ik,
+                                                  follow_devices=self.follow_devices))
         return coll, take, synth
 
     def _error(self, exc):
@@ -107,8 +110,13 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
             method_view.build_method_view(context, duet_coll, duet, coll, coll.dancing_points.frame_start)
         except Exception as exc:  # the duet stands; the method view is left out whole
             self.report({'WARNING'}, error_message(exc, "Dancing Points method view not built"))
-        self.report({'INFO'}, "Baked '{:s}': {:d} frames (synthesis {:.1f} s, bake {:.1f} s)".format(
-            duet_coll.name, duet.n_frames, t_synth, t_bake))
+        c = duet.calibration
+        if c is not None:  # what was estimated, on the take (the panel shows it)
+            s = coll.dancing_points
+            s.height_used, s.height_source = c.height, c.height_source
+            s.floor_used, s.floor_source = c.floor_y, c.floor_source
+        self.report({'INFO'}, "Baked '{:s}': {:d} frames (synthesis {:.1f} s, bake {:.1f} s); {:s}".format(
+            duet_coll.name, duet.n_frames, t_synth, t_bake, c.describe() if c is not None else ""))
         return {'FINISHED'}
 
     # -- from a script -------------------------------------------------------------

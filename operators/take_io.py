@@ -518,9 +518,11 @@ def take_from_collection(context, coll):
     if exact is not None:
         pos, quats = exact
     time = s.t0 + np.arange(T) / float(s.fps or NET_FPS)
-    meta = {}
+    meta = {"devices": s.devices}
     if s.height > 0:
         meta["height_m"] = float(s.height)
+    if s.use_floor_y:
+        meta["floor_y"] = float(s.floor_y)
     return Take(time, pos, quats, meta, s.source)
 
 
@@ -544,8 +546,15 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
                     "FBX frame rate, AMC 60/120 Hz)",
     )
     height: FloatProperty(
-        name="Leader Height", default=0.0, min=0.0, soft_max=2.5, unit='LENGTH', precision=3,
-        description="Standing height of the leading dancer (0: the file's height_m, else estimated)",
+        name="Dancer Height", default=0.0, min=0.0, soft_max=2.5, unit='LENGTH', precision=3,
+        description="Standing height of the tracked dancer (0: the file's height_m, else estimated)",
+    )
+    devices: EnumProperty(
+        name="Devices", default='FILE',
+        description="What the take's three poses are (SPEC §3 devices)",
+        items=(('FILE', "From File", "The take's devices (a .csv's devices=...; joints for a motion file)"),
+               ('joints', "Joints", "The head and wrist points of a full-body motion"),
+               ('openxr', "OpenXR", "A headset's view pose and two controllers' grip poses")),
     )
     units: EnumProperty(
         name="Units", default='AUTO',
@@ -565,7 +574,7 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         layout = self.layout
         layout.use_property_split = True
         layout.use_property_decorate = False
-        for prop in ("frame_start", "input_fps", "height", "units", "update_scene_fps",
+        for prop in ("frame_start", "input_fps", "height", "devices", "units", "update_scene_fps",
                      "update_scene_duration", "keep_source", "axis_forward", "axis_up"):
             layout.prop(self, prop)
 
@@ -611,9 +620,17 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         if ext in (".bvh", ".fbx"):
             conv = bm.C  # the rig was read in Blender's space already; it is motion space now
         name = os.path.splitext(os.path.basename(path))[0]
+        devices = (take.meta.get("devices") or "joints") if self.devices == 'FILE' else self.devices
+        if devices not in ("joints", "openxr"):
+            raise InputError(path, f"unknown devices value {devices!r} (expected joints or openxr)")
         settings = dict(source=path, source_type=ext[1:], height=float(take.height or 0.0),
-                        input_fps=float(self.input_fps), source_fps=source_fps,
+                        input_fps=float(self.input_fps), source_fps=source_fps, devices=devices,
                         axis_forward=self.axis_forward, axis_up=self.axis_up)
+        if take.meta.get("floor_y") not in (None, ""):
+            try:
+                settings.update(use_floor_y=True, floor_y=float(take.meta["floor_y"]))
+            except ValueError:
+                raise InputError(path, f"floor_y is not a number: {take.meta['floor_y']!r}") from None
         scene = context.scene
         # Keys in scene time: one scene frame per sample when the scene is set to 30 fps, else
         # the scene's rate / 30 (a 24 fps project keeps its rate and the take its real speed).

@@ -62,7 +62,17 @@ class VIEW3D_PT_dancing_points_take(SubPanel, bpy.types.Panel):
         col = layout.column(align=True)
         col.label(text=take.name, icon='OUTLINER_COLLECTION')
         col.label(text="{:d} frames at {:g} fps from frame {:d}".format(s.n_frames, s.fps, s.frame_start))
+        layout.prop(s, "devices")
         layout.prop(s, "height")
+        row = layout.row(heading="Floor")
+        row.prop(s, "use_floor_y", text="")
+        sub = row.row()
+        sub.active = s.use_floor_y
+        sub.prop(s, "floor_y", text="")
+        if s.height_source:  # what the last synthesis used
+            col = layout.column(align=True)
+            col.label(text="Height {:.2f} m ({:s})".format(s.height_used, s.height_source), icon='INFO')
+            col.label(text="Floor at {:+.3f} m ({:s})".format(s.floor_used, s.floor_source))
 
 
 class VIEW3D_PT_dancing_points_synthesis(SubPanel, bpy.types.Panel):
@@ -75,11 +85,13 @@ class VIEW3D_PT_dancing_points_synthesis(SubPanel, bpy.types.Panel):
             return
         layout.prop(settings, "foot_lock")
         layout.prop(settings, "hand_ik")
+        layout.prop(settings, "follow_devices")
         row = layout.row()
         row.enabled = _active_take(context) is not None
         op = row.operator("dancing_points.synthesize", text="Synthesise Duet", icon='ARMATURE_DATA')
         op.foot_lock = settings.foot_lock
         op.hand_ik = settings.hand_ik
+        op.follow_devices = settings.follow_devices
 
 
 class VIEW3D_PT_dancing_points_preview(SubPanel, bpy.types.Panel):

@@ -724,3 +724,43 @@ def test_edited_take_reads_its_keyframes(files):
     moved = take.positions.copy()
     moved[5, 1] += 0.01  # the left hand 1 cm away on one frame
     assert take_io.stored_samples(coll, moved, take.quats) is None
+
+
+def test_headset_take_import_calibration_on_the_take(files, tmp_path):
+    """A headset's take (devices=openxr) imports as such; the Devices option
+    overrides the file; synthesising stores the estimated height and the floor
+    on the take; a floor given in the panel reaches the synthesis; the baked
+    leader is the core's duet of the same take."""
+    from dancing_points_addon.calibration import headset_take
+
+    bsu.fresh_scene()
+    xr = tmp_path / "headset.csv"
+    write_take(xr, headset_take(files["take"]))
+    coll = _import(xr)
+    s = coll.dancing_points
+    assert s.devices == 'openxr' and s.height == 0.0 and not s.use_floor_y and s.height_source == ""
+    take_io = import_from_extension("operators.take_io")
+    take = take_io.take_from_collection(bpy.context, coll)
+    assert take.meta["devices"] == "openxr"
+    assert bpy.ops.dancing_points.synthesize(model_dir=MODELS, take=coll.name) == {'FINISHED'}
+    runtime = import_from_extension("dancing_points_addon.runtime")
+    duet = runtime.Synthesizer(runtime.SynthesisOptions(models=MODELS)).synthesize(take)
+    assert s.height_source == "estimated" and abs(s.height_used - duet.calibration.height) < 1e-5
+    assert s.floor_source == "assumed" and s.floor_used == 0.0
+    (duet_coll,) = [c for c in bpy.data.collections if c.dancing_points.kind == 'DUET'
+                    and c.dancing_points.take_name == coll.name]
+    arm, _ = _rig(duet_coll, "leader")
+    scene = bpy.context.scene
+    for k in (0, duet.n_frames // 2, duet.n_frames - 1):
+        scene.frame_set(s.frame_start + k)
+        head = arm.matrix_world @ arm.pose.bones["upperneck"].tail
+        assert np.linalg.norm(bm.to_motion(np.array(head)) - duet.leader_positions[k, 15]) < 1e-3
+    # the panel's floor and height reach the synthesis as given
+    s.use_floor_y, s.floor_y, s.height = True, 0.02, 1.75
+    take = take_io.take_from_collection(bpy.context, coll)
+    assert take.meta["floor_y"] == pytest.approx(0.02) and take.height == pytest.approx(1.75)
+    assert bpy.ops.dancing_points.synthesize(model_dir=MODELS, take=coll.name) == {'FINISHED'}
+    assert s.height_source == "given" and s.floor_source == "given" and s.floor_used == pytest.approx(0.02)
+    # the import option overrides the file's devices
+    coll2 = _import(xr, devices='joints')
+    assert coll2.dancing_points.devices == 'joints'

@@ -285,3 +285,31 @@ def default_pose(x: np.ndarray, where=None, clips=None) -> list:
     pose = x[:, :F.POSE_DIM].astype(np.float64)
     z = (pose - pose.mean(0)) / (pose.std(0) + 1e-6)
     return pose[int(np.argmin((z ** 2).sum(1)))].round(6).tolist()
+
+
+def device_offset_clips(clips, rng, offset_m: float = 0.03, scale: float = 0.03):
+    """A copy of each duet clip as a different wearer and headset would give
+    it: the leader's three points each moved by a constant offset in its own
+    device's frame (uniform in ±``offset_m`` per axis: the skull for the head,
+    the hand bone for a hand, as the body offsets of an OpenXR take are wrong,
+    see ``formats.devices``), and the whole couple scaled by a constant
+    factor within ±``scale`` (a height misjudged). His roots follow his moved
+    head; her points are hers, scaled. For the networks that read his points
+    (the mapping and the others on its input), which must not hinge on either."""
+    from dancing_points_addon.representation import root_from_motion
+    from dancing_points_addon.skeleton import JOINT_INDEX as J
+
+    bones = (J["head"], J["lhand"], J["rhand"])
+    out = []
+    for c in clips:
+        if c.follower is None:
+            continue
+        s = 1.0 + rng.uniform(-scale, scale)
+        off = rng.uniform(-offset_m, offset_m, (3, 3))
+        L, Fo = c.leader, c.follower
+        pos = L.positions * s
+        pos[:, TRACKED] += np.einsum("tdij,dj->tdi", L.rotations[:, list(bones)], off)
+        lead = type(L)(pos, L.rotations, root_from_motion(pos, L.rotations), L.contacts)
+        fol = type(Fo)(Fo.positions * s, Fo.rotations, Fo.roots * np.array([s, s, 1.0, 1.0]), Fo.contacts)
+        out.append(type(c)(c.name + "o", lead, fol, c.mirrored))
+    return out

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass
 import os
 import tempfile
 import time
@@ -26,26 +27,36 @@ from training.dataset import FOLLOWER, LEADER, SALSA_TAKES, split_range
 from dancing_points_addon.representation import root_from_head, to_local, to_world
 from dancing_points_addon.nets import OnnxNet, load_nets
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
-from dancing_points_addon.skeleton import TRACKED, bone_lengths_from_positions
+from dancing_points_addon.skeleton import TRACKED, WRISTS, bone_lengths_from_positions
 from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
+from dancing_points_addon.calibration import TRAIN_HEIGHT, headset_take, height_from_head
+from dancing_points_addon.formats.devices import DeviceOffsets
+from dancing_points_addon.formats.inputs import HAND_BONES
 
 SCORE_FROM = 1.0  # seconds
 
 
-def test_segments(data_dir, takes=SALSA_TAKES, split="test"):
+def test_segments(data_dir, takes=SALSA_TAKES, split="test", tracked="leader"):
     """Per take: (name, leader 60 Hz test Motion slice, leader 30 Hz GT, follower 30 Hz GT, bone lengths).
     ``split="train"`` gives the train frames instead: what the runtime's own
-    settings (foot locking, IK) are tuned on, never the test frames."""
+    settings (foot locking, IK) are tuned on, never the test frames.
+    ``tracked="follower"``: the follower's frames in the leader's place (SPEC §6
+    "on unseen dancers": her three points as a leader's take; only the
+    "leader" figures then mean anything, and they are hers)."""
+    subjects = (LEADER, FOLLOWER) if tracked == "leader" else (FOLLOWER, LEADER)
+    ref = None
     for take in takes:
-        lead = load_amc(os.path.join(data_dir, f"{LEADER}_{take}.amc"))
-        fol = load_amc(os.path.join(data_dir, f"{FOLLOWER}_{take}.amc"))
+        lead = load_amc(os.path.join(data_dir, f"{subjects[0]}_{take}.amc"))
+        fol = load_amc(os.path.join(data_dir, f"{subjects[1]}_{take}.amc"))
+        ref = ref if ref is not None else (lead if tracked == "leader" else fol).bone_vectors
         a, b = split_range(lead.n_frames, split)
         lead60 = type(lead)(lead.positions[2 * a:2 * b], lead.rotations[2 * a:2 * b], lead.fps, lead.bone_vectors,
                             lead.source)
         yield {"take": take, "lead60": lead60,
                "lead": (lead.positions[::2][a:b], lead.rotations[::2][a:b]),
                "fol": (fol.positions[::2][a:b], fol.rotations[::2][a:b]),
-               "lead_len": lead.bone_lengths(), "fol_len": fol.bone_lengths()}
+               "lead_len": lead.bone_lengths(), "fol_len": fol.bone_lengths(),
+               "lead_vec": lead.bone_vectors, "ref_vec": ref}
 
 
 # -- ablations -----------------------------------------------------------------
@@ -80,8 +91,8 @@ class PastInputSynth(Synthesizer):
             return super()._follower_keys(f_roots, f_tr, l_roots, l_tr)
         return self._past(self._fh, None)
 
-    def step(self, positions, quats, valid=(True, True, True)):
-        a, b = super().step(positions, quats, valid)
+    def _frame(self, positions, quats, valid):
+        a, b = super()._frame(positions, quats, valid)
         s = self.scale()
         tr = b.positions[TRACKED] * s
         from dancing_points_addon.representation import device_rotation
@@ -112,22 +123,26 @@ class FixedPose:
     placement relative to the leader in the train split."""
 
     def __init__(self, synth: Synthesizer, follower_offset):
+        self.synth = synth
         self.lead_pose = synth.default_pose["leader"]
         self.fol_pose = synth.default_pose["follower"]
         self.offset = follower_offset
 
     def run(self, take):
+        from dancing_points_addon.calibration import apply_calibration
         from dancing_points_addon.representation import root_compose, rot_to_world
         from dancing_points_addon.resample import resample_take
         from dancing_points_addon.rotations import quat_to_matrix
 
-        tk = resample_take(take, F.FPS)
+        calib = self.synth.calibrate(take)
+        tk = resample_take(apply_calibration(take, calib), F.FPS)
         roots = root_from_head(tk.positions[:, 0], quat_to_matrix(tk.quats[:, 0]))
         out = []
         for pose, rts in ((self.lead_pose, roots), (self.fol_pose, root_compose(roots, self.offset[None]))):
             p = F.pose_positions(pose)
             r = F.pose_rotations(pose)
             pw = to_world(np.broadcast_to(p, (len(rts), 31, 3)), rts)
+            pw[..., 1] += calib.floor_y
             rw = rot_to_world(np.broadcast_to(r, (len(rts), 31, 3, 3)), rts)
             out.append((pw, rw))
         return out
@@ -243,29 +258,73 @@ def cut_last(runs, seconds=2.0):
     return out
 
 
-def segment_take(seg, tmpdir):
+@dataclass(frozen=True)
+class Scenario:
+    """How the tracked dancer's take of a segment is written and read: SPEC §6
+    writes the leader's test frames as a ``joints`` take and gives no height;
+    its variants write them as a headset records them (``devices="openxr"``),
+    read them with body offsets ``offset_error`` metres wrong (a 3-vector in
+    each device's own axes), move the floor by ``floor_shift`` metres (the
+    truth moves with it), or give a ``height`` (metres, or ``"skeleton"``: the
+    dancer's own, :func:`skeleton_height`)."""
+
+    devices: str = "joints"
+    offset_error: tuple | None = None
+    floor_shift: float = 0.0
+    height: float | str | None = None
+
+    def options(self, seg, **kw) -> SynthesisOptions:
+        height = skeleton_height(seg["lead_vec"], seg["ref_vec"]) if self.height == "skeleton" else self.height
+        offsets = None
+        if self.offset_error is not None:  # the offsets the take was written with, each one off
+            true = DeviceOffsets().at(seg["writer_height"])
+            offsets = DeviceOffsets(*(tuple(v) for v in true + np.asarray(self.offset_error)))
+        return SynthesisOptions(height=height, offsets=offsets, **kw)
+
+
+def skeleton_height(bone_vectors, reference_vectors) -> float:
+    """A CMU skeleton's standing height in the runtime's convention: the
+    training leader's :data:`~dancing_points_addon.calibration.TRAIN_HEIGHT`
+    times the ratio of the rest height of the head point above the balls of
+    the feet, this skeleton's to his (``reference_vectors``)."""
+    from dancing_points_addon.skeleton import JOINT_INDEX, rest_joints
+
+    def rest_head(vec):
+        j = rest_joints(np.asarray(vec))
+        return float(j[TRACKED[0], 1] - j[JOINT_INDEX["lfoot"], 1])
+
+    return TRAIN_HEIGHT * rest_head(bone_vectors) / rest_head(reference_vectors)
+
+
+def segment_take(seg, tmpdir, scenario: Scenario = Scenario()):
     """The leader's frames of a segment written as a take file (SPEC §3, native
-    60 Hz, time from 0) and read back, as SPEC §6 asks."""
+    60 Hz, time from 0) and read back, as SPEC §6 asks; as ``scenario`` says."""
     path = os.path.join(tmpdir, f"lead_{seg['take']}.csv")
-    take = take_from_motion(seg["lead60"])
+    motion = seg["lead60"]
+    take = take_from_motion(motion)
     take.time = take.time - take.time[0]
+    seg["writer_height"] = height_from_head(take.positions[:, 0, 1])
+    if scenario.devices == "openxr":
+        take = headset_take(take, motion.rotations[:, list(HAND_BONES)])
+    if scenario.floor_shift:
+        take.positions[..., 1] += scenario.floor_shift
     write_take(path, take)
     return read_take(path)
 
 
-def noise_robustness(factory, segments, tmpdir, sigma=0.001, draws=1, seed=0):
+def noise_robustness(factory, segments, tmpdir, sigma=0.001, draws=1, seed=0, scenario=Scenario()):
     """Per-frame change of each dancer (mean over joints, cm) when Gaussian noise
     of ``sigma`` metres is added to every tracked position of the take: mean
     and 99th percentile over all frames of all takes and draws."""
     rng = np.random.default_rng(seed)
     diffs = {"leader": [], "follower": []}
     for seg in segments:
-        take = segment_take(seg, tmpdir)
-        clean = factory().synthesize(take)
+        take = segment_take(seg, tmpdir, scenario)
+        clean = factory(seg).synthesize(take)
         for _ in range(draws):
             noisy = type(take)(take.time, take.positions + rng.normal(0.0, sigma, take.positions.shape),
                                take.quats, take.meta, take.source)
-            out = factory().synthesize(noisy)
+            out = factory(seg).synthesize(noisy)
             for role in diffs:
                 a, b = getattr(clean, f"{role}_positions"), getattr(out, f"{role}_positions")
                 diffs[role].append(np.linalg.norm(a - b, axis=-1).mean(-1))
@@ -278,22 +337,31 @@ def noise_robustness(factory, segments, tmpdir, sigma=0.001, draws=1, seed=0):
     return res
 
 
-def run_system(factory, segments, tmpdir, fixed=None):
+def run_system(factory, segments, tmpdir, fixed=None, scenario=Scenario()):
+    """Each segment's take (``scenario``) through ``factory(seg)``'s synthesizer
+    (or ``fixed``); per take the predicted and true positions to score, and what
+    the device and robustness figures need (:func:`device_figures`)."""
     runs = []
     t0 = time.time()
     frames = leashed = 0
     for seg in segments:
-        take = segment_take(seg, tmpdir)
+        take = segment_take(seg, tmpdir, scenario)
+        lr = devices = None
         if fixed is not None:
             (pl, _), (pf, _) = fixed.run(take)
             poses = fixed.lead_pose, fixed.fol_pose
         else:
-            synth = factory()
+            synth = factory(seg)
             duet = synth.synthesize(take)
-            pl, pf = duet.leader_positions, duet.follower_positions
+            pl, pf, lr = duet.leader_positions, duet.follower_positions, duet.leader_rotations
+            devices = device_rotations(take, duet.calibration)
             placement = getattr(synth, "_placement", None)
             leashed += placement.leashed if placement is not None else 0
             poses = synth.default_pose["leader"], synth.default_pose["follower"]
+        if scenario.floor_shift:  # against the equally shifted truth
+            pl, pf = pl.copy(), pf.copy()
+            pl[..., 1] -= scenario.floor_shift
+            pf[..., 1] -= scenario.floor_shift
         # each dancer's train pose nearest the mean (the networks' default_pose), as a prior to beat
         mean_poses = tuple(F.pose_positions(np.asarray(p, dtype=np.float64)) for p in poses)
         tl, tf = seg["lead"][0], seg["fol"][0]
@@ -301,9 +369,50 @@ def run_system(factory, segments, tmpdir, fixed=None):
         mask = np.arange(n) / F.FPS >= SCORE_FROM
         runs.append({"pl": pl[:n], "pf": pf[:n], "tl": tl[:n], "tf": tf[:n], "mask": mask,
                      "lead_len": seg["lead_len"], "fol_len": seg["fol_len"],
-                     "input_head": tl[:n, TRACKED[0]], "mean_poses": mean_poses})
+                     "input_head": tl[:n, TRACKED[0]], "mean_poses": mean_poses,
+                     "lr": None if lr is None else lr[:n], "devices": None if devices is None else devices[:n]})
         frames += n
     return runs, {"seconds": time.time() - t0, "frames": frames, "leash_frames": leashed}
+
+
+def device_rotations(take, calib):
+    """``(T, 3, 3, 3)`` at 30 Hz: the rotation each device measures, as the
+    bone it turns (the skull; the ``*wrist`` bones, or for ``openxr`` the
+    ``*hand`` bones); NaN where a device is lost."""
+    from dancing_points_addon.calibration import apply_calibration
+    from dancing_points_addon.representation import DEVICE_FROM_HEAD
+    from dancing_points_addon.resample import resample_take
+    from dancing_points_addon.rotations import quat_to_matrix
+
+    tk = resample_take(apply_calibration(take, calib), F.FPS)
+    R = quat_to_matrix(np.nan_to_num(tk.quats))
+    R[:, 0] = R[:, 0] @ DEVICE_FROM_HEAD
+    R[~tk.valid] = np.nan
+    return R
+
+
+def device_figures(runs, devices="joints"):
+    """How far the tracked dancer's head and hands are turned from the devices
+    (mean degrees over scored frames), the largest frame-to-frame step of his
+    wrists and of both pelvises (m), and the lowest foot point of each dancer
+    (cm; its floor at y = 0)."""
+    from dancing_points_addon.skeleton import JOINT_INDEX as J
+
+    hands = ("lwrist", "rwrist") if devices == "joints" else ("lhand", "rhand")
+    head, wrist = [], []
+    for r in runs:
+        if r.get("lr") is None:
+            continue
+        head.append(M.rotation_error_deg(r["lr"][:, J["head"]], r["devices"][:, 0], r["mask"]))
+        for i, b in enumerate(hands):
+            wrist.append(M.rotation_error_deg(r["lr"][:, J[b]], r["devices"][:, 1 + i], r["mask"]))
+    every = [np.ones(len(r["mask"]), dtype=bool) for r in runs]
+    return {"head_off_device_deg": M.aggregate(head), "wrists_off_devices_deg": M.aggregate(wrist),
+            "max_wrist_step_m": max(M.max_step(r["pl"][:, list(WRISTS)], m) for r, m in zip(runs, every)),
+            "max_pelvis_step_m": max(max(M.max_step(r[k][:, :1], m) for k in ("pl", "pf"))
+                                     for r, m in zip(runs, every)),
+            "lowest_foot_leader_cm": 100 * min(M.lowest_foot(r["pl"], m) for r, m in zip(runs, every)),
+            "lowest_foot_follower_cm": 100 * min(M.lowest_foot(r["pf"], m) for r, m in zip(runs, every))}
 
 
 def main(argv=None):
@@ -322,15 +431,40 @@ def main(argv=None):
                          "every tracked position (e.g. 0.001)")
     ap.add_argument("--noise-draws", type=int, default=1)
     ap.add_argument("--only-full", action="store_true", help="score the full system only (no ablations)")
+    ap.add_argument("--devices", choices=("joints", "openxr"), default="joints",
+                    help="write the takes as the SPEC §2 points (joints) or as a headset records them (openxr)")
+    ap.add_argument("--offset-error", default=None, metavar="AXIS:M",
+                    help="openxr: read the takes with every body offset wrong by M metres along AXIS of each "
+                         "device, e.g. +x:0.02 or -z:0.02")
+    ap.add_argument("--floor-shift", type=float, default=0.0, metavar="M",
+                    help="move the takes' floor by M metres (scored against the equally moved truth)")
+    ap.add_argument("--height", default=None,
+                    help="give the tracked dancer's height: metres, or 'skeleton' (the dancer's own; default: none, "
+                         "estimated)")
+    ap.add_argument("--floor-y", type=float, default=None, metavar="Y",
+                    help="give the floor's height (default: none; estimated when a height is given)")
+    ap.add_argument("--tracked", choices=("leader", "follower"), default="leader",
+                    help="follower: her three points as a leader's take (SPEC §6 'on unseen dancers'; only the "
+                         "leader's figures mean anything, and they are hers)")
+    ap.add_argument("--no-device-follow", action="store_true", help="his head and hands not turned as the devices")
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
     args = ap.parse_args(argv)
 
     takes = tuple(args.takes.split(",")) if args.takes else SALSA_TAKES
-    segments = list(test_segments(args.data, takes, args.split))
+    segments = list(test_segments(args.data, takes, args.split, args.tracked))
     nets = load_nets(args.models)
-    opts = SynthesisOptions(foot_lock=not args.no_foot_lock)
-    systems = {"full": lambda: Synthesizer(opts, nets=nets)}
+    error = None
+    if args.offset_error:
+        axis, metres = args.offset_error.split(":")
+        error = np.zeros(3)
+        error["xyz".index(axis[-1])] = float(metres) * (-1.0 if axis.startswith("-") else 1.0)
+        error = tuple(error)
+    height = args.height if args.height in (None, "skeleton") else float(args.height)
+    scenario = Scenario(args.devices, error, args.floor_shift, height)
+    kw = dict(foot_lock=not args.no_foot_lock, follow_devices=not args.no_device_follow, floor_y=args.floor_y)
+    opts = lambda seg: scenario.options(seg, **kw)  # noqa: E731
+    systems = {"full": lambda seg: Synthesizer(opts(seg), nets=nets)}
     partial = {}
     if args.ablations:
         for tag in ("vanilla", "pastinput"):
@@ -346,16 +480,19 @@ def main(argv=None):
                 # separation and holds (built on the mapping's prediction) go with it
                 kw = {"follower": None} if tag == "pastinput" and "follower" not in partial[tag] else {}
                 systems[{"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}[tag]] = \
-                    (lambda a=abl, c=cls, kw=kw: c(opts, nets=a, **kw))
+                    (lambda seg, a=abl, c=cls, kw=kw: c(opts(seg), nets=a, **kw))
     if not args.only_full:
         # (c): no follower mapping, so none of the placement built on it either
-        systems["(c) follower from leader trajectory"] = lambda: LeaderTrajSynth(opts, nets=nets, follower=None)
+        systems["(c) follower from leader trajectory"] = lambda seg: LeaderTrajSynth(opts(seg), nets=nets,
+                                                                                    follower=None)
     names = {"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name, factory in systems.items():
-            runs, info = run_system(factory, segments, tmp)
+            runs, info = run_system(factory, segments, tmp, scenario=scenario)
             results[name] = {**score(runs), **stability(runs), **info}
+            if name == "full":
+                results[name].update(device_figures(runs, args.devices))
             results[name]["without_last_2s"] = score(cut_last(runs))
             tag = next((t for t, n in names.items() if n == name), None)
             if tag in partial and partial[tag]:
@@ -363,12 +500,13 @@ def main(argv=None):
             print(name, json.dumps({k: round(v, 3) if isinstance(v, float) else v
                                     for k, v in results[name].items() if k != "without_last_2s"}), flush=True)
         if args.noise > 0:
-            results["full"].update(noise_robustness(systems["full"], segments, tmp, args.noise, args.noise_draws))
+            results["full"].update(noise_robustness(systems["full"], segments, tmp, args.noise, args.noise_draws,
+                                                    scenario=scenario))
             print("noise", json.dumps({k: round(v, 3) for k, v in results["full"].items() if k.startswith("noise")}),
                   flush=True)
         if not args.only_full:
             fixed = FixedPose(Synthesizer(SynthesisOptions(foot_lock=False), nets=nets), mean_follower_offset(args.data))
-            runs, info = run_system(None, segments, tmp, fixed=fixed)
+            runs, info = run_system(None, segments, tmp, fixed=fixed, scenario=scenario)
             results["(d) fixed pose under the head"] = {**score(runs), **stability(runs), **info}
             print("(d)", json.dumps({k: round(v, 3) if isinstance(v, float) else v
                                      for k, v in results["(d) fixed pose under the head"].items()}), flush=True)

@@ -138,3 +138,27 @@ def f1(counts):
     fp = sum(c[1] for c in counts)
     fn = sum(c[2] for c in counts)
     return 2 * tp / max(2 * tp + fp + fn, 1)
+
+
+def rotation_error_deg(pred_rot, target_rot, mask):
+    """Mean angle (degrees) between predicted and target rotations ``(T, 3, 3)``
+    on the frames of ``mask`` where the target is known (finite)."""
+    ok = mask & np.isfinite(target_rot).all(axis=(-1, -2))
+    if not ok.any():
+        return 0.0, 0
+    rel = np.swapaxes(pred_rot[ok], -1, -2) @ target_rot[ok]
+    tr = np.trace(rel, axis1=-2, axis2=-1)
+    return float(np.degrees(np.arccos(np.clip((tr - 1.0) * 0.5, -1.0, 1.0))).sum()), int(ok.sum())
+
+
+def max_step(points, mask):
+    """Largest per-frame displacement (m) of any of ``points (T, K, 3)`` between
+    two frames of ``mask``."""
+    d = np.linalg.norm(np.diff(points, axis=0), axis=-1).max(-1)
+    m = mask[1:] & mask[:-1]
+    return float(d[m].max()) if m.any() else 0.0
+
+
+def lowest_foot(pos, mask):
+    """The lowest height (m) of a foot contact point over the frames of ``mask``."""
+    return float(pos[mask][:, FEET, 1].min()) if mask.any() else float("nan")

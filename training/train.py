@@ -30,8 +30,8 @@ from dancing_points_addon.follower import HIP_BINS
 from dancing_points_addon.nets import MODEL_FILES
 from training.dataset import load_clips
 
-from .data import (anchor_samples, contact_samples, default_pose, floor_levels_of, hip_heading_samples,
-                   mapping_samples, noisy_placement_state, placement_samples, rollout_states, time_reverse,
+from .data import (anchor_samples, contact_samples, default_pose, device_offset_clips, floor_levels_of,
+                   hip_heading_samples, mapping_samples, noisy_placement_state, placement_samples, rollout_states, time_reverse,
                    time_warp, tracking_samples)
 from .export import export
 from .model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
@@ -178,6 +178,11 @@ def main(argv=None):
                     help="trackers: epochs of a second stage on their own closed-loop states (DAgger-style)")
     ap.add_argument("--l2-loss", action="store_true",
                     help="trackers (and ablation (a)) trained with the paper's unsquared L2 losses")
+    ap.add_argument("--device-aug", default="none", metavar="OFFSET,SCALE",
+                    help="the networks on the mapping's input also learn from a copy of every clip with the "
+                         "leader's three points moved by a constant offset of up to OFFSET m per axis of each "
+                         "device and the couple scaled by up to ±SCALE (a wrong body offset or height), their "
+                         "epochs halved (the same steps), e.g. 0.03,0.03; none: not")
     ap.add_argument("--weights", choices=("int8", "fp32"), default="int8",
                     help="exported weights: int8 (quantised, shipped) or float32")
     args = ap.parse_args(argv)
@@ -204,6 +209,12 @@ def main(argv=None):
     t_all = time.time()
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
+    # the networks on the mapping's input: also the clips as another wearer's headset gives them
+    input_clips, input_copies = clips, 1
+    if args.device_aug != "none":
+        offset_m, scale = (float(v) for v in args.device_aug.split(","))
+        input_clips = clips + device_offset_clips(clips, np.random.default_rng(args.seed), offset_m, scale)
+        input_copies = 2
     only = set(args.only.split(",")) if args.only else {*SHIPPED, "vanilla", "pastinput"}
     # the recipe options given on the command line (paths and machine settings aside)
     overrides = {k: v for k, v in vars(args).items() if v != ap.get_default(k)
@@ -218,7 +229,7 @@ def main(argv=None):
         """The mapping network (``name`` mapping), or the placement network (the
         same network and recipe, also trained on the clips played backwards with
         the loss on the follower's outputs: ``placement``)."""
-        map_clips = clips
+        map_clips = input_clips
         if timewarp:
             map_clips = clips + time_warp(clips, [float(r) for r in timewarp.split(",")])
         samples = placement_samples if name == "placement" and args.placement_state else mapping_samples
@@ -240,7 +251,7 @@ def main(argv=None):
         log(f"{name}: {x.shape} -> {y.shape}")
         noise = 0.1 if args.map_noise is None else args.map_noise
         dropout = 0.1 if args.map_dropout is None else args.map_dropout
-        epochs = max(1, (args.map_epochs or cfg["map_epochs"]) // copies)  # the same number of steps
+        epochs = max(1, (args.map_epochs or cfg["map_epochs"]) // (copies * input_copies))  # the same steps
         hidden = args.map_hidden or cfg["map_hidden"]
         wd = 1e-4 if args.map_wd is None else args.map_wd
         n_in = x.shape[1]
@@ -270,11 +281,11 @@ def main(argv=None):
     def input_net(key, cls, samples, kind, name, extra):
         """A small network on the mapping's input (the contact network, the pose
         anchor): trained, exported as ``name``.onnx, checkpointed, reported."""
-        x, y = samples(clips)
+        x, y = samples(input_clips)
         log(f"{key}: {x.shape} -> {y.shape}")
         c = cfg[key]
         m = cls(F.MAP_IN, y.shape[1], c["hidden"], c["layers"], noise=c["noise"], dropout=c["dropout"])
-        info = train_model(m, x, y, c["epochs"], device=device, log=log, seed=args.seed)
+        info = train_model(m, x, y, max(1, c["epochs"] // input_copies), device=device, log=log, seed=args.seed)
         info.update({k: v for k, v in c.items() if k != "epochs"})
         meta = {"hidden": c["hidden"], "layers": c["layers"], "train": info, **extra, **split_meta}
         export(m, kind, os.path.join(args.out, f"{name}.onnx"), F.MAP_IN, meta, weights=args.weights)

@@ -32,8 +32,9 @@ import os
 import sys
 import time
 
-from ..argtypes import (EXIT_BAD_INPUT, EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, height_metres,
-                        positive_float, positive_int, printable, thread_count)
+from ..argtypes import (EXIT_BAD_INPUT, EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED,
+                        add_calibration_arguments, height_metres, positive_float, positive_int, printable,
+                        thread_count)
 from ..errors import InputError, one_line
 from .options import (BPY_FORMATS, BPY_INPUTS, CORE_INPUTS, FORMATS, check_rigs, default_jobs, job_options,
                       resolve_model_dir)
@@ -93,7 +94,8 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
     p.add_argument("--asf", default=None, metavar="PATH",
                    help="ASF skeleton for the AMC inputs (default: found beside each)")
     p.add_argument("--height", type=height_metres, default=None, metavar="H",
-                   help="the leader's height in metres (default: the take's height_m, else estimated)")
+                   help="the tracked dancer's height in metres (default: each take's height_m, else estimated)")
+    add_calibration_arguments(p)
     p.add_argument("--no-foot-lock", action="store_true", help="turn contact-based foot locking off")
     p.add_argument("--no-hand-ik", action="store_true",
                    help="leave the leader's head and wrists where the network puts them (no IK onto the input)")

@@ -62,14 +62,18 @@ def job_options(args, model_dir) -> dict:
             "height": args.height, "input_fps": args.input_fps,
             "asf": os.path.abspath(args.asf) if args.asf else None,
             "no_foot_lock": bool(args.no_foot_lock), "no_hand_ik": bool(args.no_hand_ik),
+            "devices": getattr(args, "devices", None), "floor_y": getattr(args, "floor_y", None),
+            "head_offset": getattr(args, "head_offset", None), "hand_offset": getattr(args, "hand_offset", None),
+            "no_device_follow": bool(getattr(args, "no_device_follow", False)),
             "leader_rig": _abs(getattr(args, "leader_rig", None)),
             "follower_rig": _abs(getattr(args, "follower_rig", None))}
 
 
 def synthesis_options(o: dict, take_height=None):
     """The :class:`~..runtime.SynthesisOptions` of a job's options (``job_options``)."""
+    from ..argtypes import calibration_options
     from ..runtime import SynthesisOptions
 
     return SynthesisOptions(models=o["models"], threads=int(o.get("threads") or 1),
                             height=o.get("height") or take_height, foot_lock=not o.get("no_foot_lock"),
-                            hand_ik=not o.get("no_hand_ik"))
+                            hand_ik=not o.get("no_hand_ik"), **calibration_options(o))

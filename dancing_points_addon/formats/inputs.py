@@ -13,6 +13,9 @@ from .files import regular_file
 from .limits import MAX_ABS_TIME_S, MAX_GAP_S, check_duration, check_height, check_rate
 from ..resample import NET_FPS, resample_plan, tracked_after_resampling
 from .take import DEVICES, MAX_DISTANCE_M, Take, read_take, take_from_motion, take_from_tracked
+from ..skeleton import JOINT_INDEX
+
+HAND_BONES = (JOINT_INDEX["lhand"], JOINT_INDEX["rhand"])  # what the grips of openxr devices are rigid on
 
 def check_take(take: Take, path=None) -> Take:
     """The rules every input must meet before it is resampled and synthesised,
@@ -74,6 +77,27 @@ INPUT_TYPES = (".csv", ".amc", ".bvh")
 
 
 def load_input(path, asf=None, input_fps=None, height=None) -> Take:
+    return _load(path, asf, input_fps, height)[0]
+
+
+def load_headset_input(path, asf=None, input_fps=None, height=None, offsets=None) -> Take:
+    """What a headset and two controllers would record of the input's dancer
+    (SPEC §3 ``devices=openxr``: ``extract --devices openxr``), through
+    :func:`~..calibration.headset_take`: from a full-body motion (AMC, a CMU
+    BVH) with the hand bones' own rotations, from a take or another BVH with
+    its hand orientations taken as the hands'. A take already ``openxr`` is
+    returned as it is."""
+    from ..calibration import headset_take
+
+    take, hands = _load(path, asf, input_fps, height, want_hands=True)
+    if take.meta.get("devices") == "openxr":
+        return take
+    return headset_take(take, hands, height=height, offsets=offsets)
+
+
+def _load(path, asf=None, input_fps=None, height=None, want_hands=False):
+    """:func:`load_input`, and with ``want_hands`` the hand bones' global
+    rotations ``(T, 2, 3, 3)`` where the input has them (else None)."""
     """Any supported input as a take at its source rate.
 
     * ``.csv`` take file (SPEC §3). ``input_fps`` replaces the time column by
@@ -100,6 +124,7 @@ def load_input(path, asf=None, input_fps=None, height=None) -> Take:
     if ext not in INPUT_TYPES:
         raise InputError(path, f"unsupported input type {ext or '(no extension)'!r} "
                                f"(expected {', '.join(INPUT_TYPES)})")
+    hands = None
     try:
         with np.errstate(all="ignore"):  # overflows are checked for and reported, never warned
             if ext == ".csv":
@@ -112,9 +137,12 @@ def load_input(path, asf=None, input_fps=None, height=None) -> Take:
                 if asf is not None:
                     regular_file(os.fspath(asf), "an ASF file", missing="no such ASF file")
                 from .asf_amc import load_amc
-                take = _checked_motion_take(path, take_from_motion(load_amc(path, asf, fps=input_fps)))
+                motion = load_amc(path, asf, fps=input_fps)
+                take = _checked_motion_take(path, take_from_motion(motion))
+                hands = motion.rotations[:, list(HAND_BONES)] if want_hands else None
             else:
-                take = _checked_motion_take(path, _take_from_bvh(path, input_fps))
+                take, hands = _take_from_bvh(path, input_fps, want_hands)
+                take = _checked_motion_take(path, take)
     except InputError:
         raise
     except MemoryError:
@@ -125,7 +153,7 @@ def load_input(path, asf=None, input_fps=None, height=None) -> Take:
     if height is not None:
         take.meta["height_m"] = height
     take.source = path
-    return check_take(take, path)
+    return check_take(take, path), hands
 
 
 def _checked_motion_take(path, take: Take) -> Take:
@@ -142,14 +170,20 @@ def _checked_motion_take(path, take: Take) -> Take:
     return take
 
 
-def _take_from_bvh(path, input_fps=None) -> Take:
+def _take_from_bvh(path, input_fps=None, want_hands=False):
+    """The take of a BVH file, and (``want_hands``, CMU naming) its hand bones' rotations."""
     from . import bvh
 
     data = bvh.parse_bvh(path, input_fps=input_fps)
+    if want_hands and bvh.detect_naming(data) == "cmu":
+        motion = bvh.bvh_to_motion(data)
+        take = take_from_motion(motion)
+        take.source = path
+        return take, motion.rotations[:, list(HAND_BONES)]
     tp = bvh.tracked_points(data)
     positions = np.asarray(tp.positions, dtype=np.float64)
     rotations = np.asarray(tp.rotations, dtype=np.float64)
     # tp.fps is 1 / Frame Time, snapped to a whole rate when the file rounded it.
     time = np.arange(positions.shape[0]) / float(tp.fps)
     return take_from_tracked(time, positions, rotations[:, 0], rotations[:, 1], rotations[:, 2],
-                             {}, path)
+                             {}, path), None
