@@ -117,6 +117,9 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
     """How a take is read (SPEC §3, §7): its devices, the floor, the wearer's body
     offsets, and whether the head and hands follow the devices. Each overrides
     the take's own metadata; ``--height`` is added with the input options."""
+    p.add_argument("--role", choices=("leader", "follower"), default=None,
+                   help="whose three points the take holds: the leader's (the follower is synthesised) or the "
+                        "follower's (the leader is synthesised); default: the take's role, else leader")
     p.add_argument("--devices", choices=("joints", "openxr"), default=None,
                    help="what the take's poses are: the SPEC §2 points (joints) or a headset's view and "
                         "controllers' grip poses (openxr); default: the take's devices, else joints")
@@ -138,7 +141,7 @@ def calibration_options(o) -> dict:
     options (parsed arguments or a batch job's dict)."""
     get = o.get if isinstance(o, dict) else (lambda k, d=None: getattr(o, k, d))
     tup = lambda v: None if v is None else tuple(float(c) for c in v)  # noqa: E731
-    return {"devices": get("devices"), "floor_y": get("floor_y"), "head_offset": tup(get("head_offset")),
+    return {"role": get("role"), "devices": get("devices"), "floor_y": get("floor_y"), "head_offset": tup(get("head_offset")),
             "hand_offset": tup(get("hand_offset")), "follow_devices": not get("no_device_follow", False)}
 
 

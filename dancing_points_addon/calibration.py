@@ -40,7 +40,8 @@ TRAIN_HEIGHT = 1.70
 TRAIN_HEAD_HEIGHT = 1.530
 HEAD_PERCENTILE = 90.0
 ESTIMATE_RANGE_M = (1.0, 2.3)  # an estimate beyond these is clipped (a child to a very tall adult)
-FLOOR_RANGE_M = 1.0  # an estimated floor further than this from y = 0 is refused as a wrong height
+FLOOR_RANGE_M = 1.0
+ROLES = ("leader", "follower")  # an estimated floor further than this from y = 0 is refused as a wrong height
 
 
 @dataclass(frozen=True)
@@ -49,7 +50,8 @@ class Calibration:
     standing ``height`` (m) and the real floor's ``floor_y`` (m, in the take's
     frame), each with where it came from (``"given"`` by an option or the
     take's metadata, ``"estimated"`` from the take, ``"assumed"``: the floor
-    at y = 0 when nothing tells it), and the device ``offsets`` (``openxr``)."""
+    at y = 0 when nothing tells it), the device ``offsets`` (``openxr``) and
+    the tracked dancer's ``role`` (SPEC §3: ``leader`` or ``follower``)."""
 
     devices: str = "joints"
     height: float = TRAIN_HEIGHT
@@ -57,20 +59,17 @@ class Calibration:
     floor_y: float = 0.0
     floor_source: str = "assumed"
     offsets: DeviceOffsets = field(default_factory=DeviceOffsets)
-
-    @property
-    def scale(self) -> float:
-        """The tracker's scale: the training height over the dancer's."""
-        return TRAIN_HEIGHT / float(self.height)
+    role: str = "leader"
 
     def describe(self) -> str:
         """One line for a user: what was given and what estimated."""
-        return (f"height {self.height:.2f} m ({self.height_source}), floor at y = {self.floor_y:+.3f} m "
-                f"({self.floor_source}), devices {self.devices}")
+        return (f"{self.role} tracked, height {self.height:.2f} m ({self.height_source}), floor at "
+                f"y = {self.floor_y:+.3f} m ({self.floor_source}), devices {self.devices}")
 
     def meta(self) -> dict:
         """The take metadata (SPEC §3 keys) that reproduce this calibration."""
-        return {"height_m": f"{self.height:.4f}", "floor_y": f"{self.floor_y:.4f}", "devices": self.devices}
+        return {"height_m": f"{self.height:.4f}", "floor_y": f"{self.floor_y:.4f}", "devices": self.devices,
+                "role": self.role}
 
 
 def height_from_head(head_y) -> float:
@@ -105,16 +104,26 @@ def head_points(take: Take, devices: str, offsets: DeviceOffsets, height) -> np.
     return take.positions[:, 0] + R @ offsets.at(height)[0]
 
 
+def check_role(value, path="<take>", line=None) -> str:
+    """A SPEC §3 ``role`` value (``leader`` or ``follower``), else an :class:`InputError`."""
+    v = str(value).strip().lower()
+    if v not in ROLES:
+        raise InputError(path, f"unknown role {value!r} (expected {' or '.join(ROLES)})", line)
+    return v
+
+
 def calibrate(take: Take, height=None, floor_y=None, devices=None, offsets: DeviceOffsets | None = None,
-              head_offset=None, hand_offset=None) -> Calibration:
-    """The calibration of ``take``: each of ``devices``, ``height`` and ``floor_y``
-    given here wins over the take's metadata (``devices``, ``height_m``,
-    ``floor_y``), which wins over an estimate (see the module's docstring).
-    ``offsets`` replaces the take's device offsets; ``head_offset`` /
-    ``hand_offset`` (x,y,z at the wearer's size) replace single ones."""
+              head_offset=None, hand_offset=None, role=None) -> Calibration:
+    """The calibration of ``take``: each of ``devices``, ``height``, ``floor_y``
+    and ``role`` given here wins over the take's metadata (``devices``,
+    ``height_m``, ``floor_y``, ``role``), which wins over an estimate (see the
+    module's docstring) or the default. ``offsets`` replaces the take's device
+    offsets; ``head_offset`` / ``hand_offset`` (x,y,z at the wearer's size)
+    replace single ones."""
     path = take.source or "<take>"
     meta = take.meta
     devices = check_devices(devices if devices is not None else meta.get("devices") or "joints", path)
+    role = check_role(role if role is not None else meta.get("role") or "leader", path)
     if offsets is None:
         offsets = offsets_for(meta, head_offset, hand_offset, path)
     if height in ("auto", ""):
@@ -133,15 +142,15 @@ def calibrate(take: Take, height=None, floor_y=None, devices=None, offsets: Devi
                                        f"check the height, or give floor_y")
         else:
             f_src, f = "assumed", 0.0
-        return Calibration(devices, h, h_src, f, f_src, offsets)
+        return Calibration(devices, h, h_src, f, f_src, offsets, role)
     f_src, f = ("given", given_f) if given_f is not None else ("assumed", 0.0)
     if not valid.any():
-        return Calibration(devices, TRAIN_HEIGHT, "assumed", f, f_src, offsets)
+        return Calibration(devices, TRAIN_HEIGHT, "assumed", f, f_src, offsets, role)
     h = TRAIN_HEIGHT
     # openxr: the skull base depends on the offsets, which scale with the height: a fixed point
     for _ in range(1 if devices == "joints" else 4):
         h = height_from_head(head_points(take, devices, offsets, h)[valid, 1] - f)
-    return Calibration(devices, h, "estimated", f, f_src, offsets)
+    return Calibration(devices, h, "estimated", f, f_src, offsets, role)
 
 
 def apply_calibration(take: Take, calib: Calibration, fill_start: bool = True) -> Take:
@@ -223,5 +232,5 @@ def headset_take(take: Take, hand_rotations=None, height=None, offsets: DeviceOf
     return Take(np.asarray(take.time, dtype=np.float64), poses, quats, meta, take.source)
 
 
-__all__ = ["headset_take", "Calibration", "DEVICE_KINDS", "TRAIN_HEIGHT", "TRAIN_HEAD_HEIGHT", "apply_calibration", "calibrate",
+__all__ = ["headset_take", "Calibration", "DEVICE_KINDS", "ROLES", "check_role", "TRAIN_HEIGHT", "TRAIN_HEAD_HEIGHT", "apply_calibration", "calibrate",
            "fill_lost_start", "floor_from_head", "height_from_head"]

@@ -141,7 +141,8 @@ def cmd_synthesize(args) -> int:
     check_not_input(args, outputs)
     take = load_input_from_args(args)
     t0 = time.perf_counter()
-    check_models(args.models, args.threads)  # --models, else $DP_MODEL_DIR, else the bundled ones
+    role = args.role or take.meta.get("role") or "leader"
+    check_models(args.models, args.threads, role)  # --models, else $DP_MODEL_DIR, else the bundled ones
     synth = Synthesizer(SynthesisOptions(models=args.models, threads=args.threads, height=args.height or take.height,
                                          foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik,
                                          **calibration_options(args)))

@@ -16,6 +16,10 @@ from .skeleton import LOWER_BODY
 
 MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
+# the networks for a follower's take (role reversal: her three points in, his motion out) are in
+# this sub-folder of a models folder, under the same file names: the "leader" files are the
+# tracked dancer's (hers), the "follower" files the synthesised partner's (his)
+ROLE_DIRS = {"leader": "", "follower": "follower"}
 MODEL_FILES = {"mapping": "mapping.onnx", "placement": "placement.onnx", "contacts": "contacts.onnx",
                "anchor": "pose_anchor.onnx", "hip": "hip_heading.onnx", "leader": "tracker_leader.onnx",
                "follower": "tracker_follower.onnx"}
@@ -81,14 +85,18 @@ class OnnxNet:
         return self.session.run([self.output], {self.input: np.ascontiguousarray(x, dtype=np.float32)})[0]
 
 
-def resolve_model_dir(explicit=None) -> str:
-    """The models folder: ``explicit`` > ``$DP_MODEL_DIR`` > the bundled ``models/``;
+def resolve_model_dir(explicit=None, role: str = "leader") -> str:
+    """The models folder: ``explicit`` > ``$DP_MODEL_DIR`` > the bundled ``models/``
+    (for a follower's take its sub-folder ``follower/``, :data:`ROLE_DIRS`);
     an :class:`InputError` naming it when a network file is missing."""
     d = explicit or os.environ.get(MODEL_ENV, "") or MODEL_DIR
     d = os.path.abspath(os.path.expanduser(d))
+    if ROLE_DIRS[role]:
+        d = os.path.join(d, ROLE_DIRS[role])
     missing = [f for f in MODEL_FILES.values() if not os.path.isfile(os.path.join(d, f))]
     if missing:
-        raise InputError(d, f"no synthesis models here (missing {', '.join(missing)})")
+        what = "synthesis models" if role == "leader" else f"models for a {role}'s take"
+        raise InputError(d, f"no {what} here (missing {', '.join(missing)})")
     return d
 
 
@@ -107,23 +115,25 @@ _CACHE: dict = {}
 _CACHE_LOCK = threading.Lock()
 
 
-def load_nets(model_dir=None, threads: int = 1) -> dict:
+def load_nets(model_dir=None, threads: int = 1, role: str = "leader") -> dict:
     """``{kind: OnnxNet}`` for every kind of :data:`MODEL_FILES` of a models folder (see
-    :func:`resolve_model_dir`), loaded once per process and thread count (and
-    again when a file changes). :class:`ModelError` when they cannot be loaded."""
-    d = resolve_model_dir(model_dir)
+    :func:`resolve_model_dir`; ``role``: whose three points the takes hold),
+    loaded once per process, role and thread count (and again when a file
+    changes). :class:`ModelError` when they cannot be loaded."""
+    d = resolve_model_dir(model_dir, role)
     paths = {k: os.path.join(d, f) for k, f in MODEL_FILES.items()}
     key = (d, max(1, int(threads)), tuple(os.path.getmtime(p) for p in paths.values()))
     with _CACHE_LOCK:
         nets = _CACHE.get(key)
         if nets is None:
             nets = {k: _load_one(p, key[1]) for k, p in paths.items()}
-            _CACHE.clear()  # one set of sessions at a time
+            while len(_CACHE) >= len(ROLE_DIRS):  # a folder's two roles at a time
+                _CACHE.pop(next(iter(_CACHE)))
             _CACHE[key] = nets
         return nets
 
 
-def check_models(model_dir=None, threads: int = 1) -> str:
+def check_models(model_dir=None, threads: int = 1, role: str = "leader") -> str:
     """Check a models folder once, before any work (the command line and the batch
     call it at start-up): the seven files exist, load in ONNX Runtime, take and
     give the sizes of this version's feature layout (``features.layout``) and
@@ -133,8 +143,8 @@ def check_models(model_dir=None, threads: int = 1) -> str:
 
     from . import features as F
 
-    nets = load_nets(model_dir, threads)
-    d = resolve_model_dir(model_dir)
+    nets = load_nets(model_dir, threads, role)
+    d = resolve_model_dir(model_dir, role)
     want = F.layout()
     ins = {"leader": "track_in", "follower": "track_in"}
     if "state_lags" in nets["placement"].meta:  # (train --placement-state: her own placement beside the lead)

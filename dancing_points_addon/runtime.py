@@ -19,7 +19,7 @@ from math import atan2, sqrt
 import numpy as np
 
 from . import features as F
-from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate, height_from_head
+from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate, check_role, height_from_head
 from .device_follow import DeviceFollow, limit_rotation
 from .follower import FollowerOptions, HandHold, HipTwist, Placement, Separation, hip_heading_from_probs
 from .formats.devices import openxr_to_points
@@ -38,6 +38,17 @@ DEFAULT_FLOOR_LEVELS = (0.07, 0.04, 0.07, 0.04)  # ankle, ball (m): without the 
 # head's turn, RETURN_TURN radians): a hand 0.9 m off is back within 0.6 s, moving no
 # faster than the dancer plus 4 cm a frame.
 RETURN_RATE, RETURN_MIN, RETURN_MAX, RETURN_TURN = 0.3, 0.003, 0.04, 0.1
+
+
+def _meta_json(net, key):
+    """A network's JSON metadata entry ``key`` (None when missing or malformed)."""
+    v = (getattr(net, "meta", {}) or {}).get(key)
+    if v is None:
+        return None
+    try:
+        return json.loads(v)
+    except (TypeError, ValueError):
+        return None
 
 
 @dataclass
@@ -71,6 +82,7 @@ class Duet:
     # How the take was read (devices, the tracked dancer's height, the floor): written
     # beside the SPEC §4 arrays (:meth:`arrays`) so that a user sees what was estimated.
     calibration: Calibration | None = None
+    tracked_role: str = "leader"  # whose three points the take held (SPEC §4)
 
     @property
     def n_frames(self):
@@ -82,7 +94,8 @@ class Duet:
         out = {"fps": np.float64(self.fps), "time": self.time, "joint_names": np.array(JOINT_NAMES),
                "leader_positions": self.leader_positions, "leader_rotations": self.leader_rotations,
                "leader_contacts": self.leader_contacts, "follower_positions": self.follower_positions,
-               "follower_rotations": self.follower_rotations, "follower_contacts": self.follower_contacts}
+               "follower_rotations": self.follower_rotations, "follower_contacts": self.follower_contacts,
+               "tracked_role": np.array(self.tracked_role)}
         c = self.calibration
         if c is not None:
             out.update(height_m=np.float64(c.height), height_source=np.array(c.height_source),
@@ -198,7 +211,8 @@ class SynthesisOptions:
     (two-bone arm IK, neck turn; on by default: it is what the paper scores,
     and the measured full-body error falls from 13.8 to 8.3 cm);
     ``follow_devices``: the tracked dancer's head and hands turn as the devices
-    do (:mod:`.device_follow`).
+    do (:mod:`.device_follow`); ``role``: whose three points the take holds,
+    SPEC §3 (None: the take's ``role``, else ``leader``).
     """
 
     models: str | None = None
@@ -212,6 +226,7 @@ class SynthesisOptions:
     hand_offset: tuple | None = None
     offsets: object | None = None
     follow_devices: bool = True
+    role: str | None = None
 
 
 # Each dancer's new root: the leader's is the one his head gives (his root cannot
@@ -247,9 +262,6 @@ class Synthesizer:
         self.options = options
         self.record_predictions = bool(record_predictions)
         self.last_prediction = None  # (2, FUTURE, 3, 3) float32 world, output scale (when recorded)
-        if nets is None:
-            nets = load_nets(options.models, options.threads)
-        self.nets = nets
         self.height = None if options.height in (None, "auto", "") else float(options.height)
         self.calibration = None  # set by :meth:`synthesize` (or :meth:`set_calibration` for a live loop)
         self.foot_lock = options.foot_lock
@@ -258,6 +270,20 @@ class Synthesizer:
         # Rigid skeleton: the neck may turn but the spine may not stretch, so a
         # baked armature (fixed bone lengths) shows exactly this pose.
         self.ik_options = {"max_stretch": 0.0, "arm": "swing"}
+        self._given_nets = nets is not None
+        role = check_role(options.role or "leader")
+        self._build(nets if nets is not None else load_nets(options.models, options.threads, role), role)
+
+    def _build(self, nets: dict, role: str) -> None:
+        """Everything that comes from the networks of a tracked ``role``: the
+        two slots ("leader": the tracked dancer, "follower": the synthesised
+        partner) are the dance roles for a leader's take and exchanged for a
+        follower's (:attr:`role`; the outputs are put back in dance roles)."""
+        self.nets = nets
+        self.role = role
+        follower = self.follower_options
+        cal = _meta_json(nets["leader"], "calibration") or {}
+        self.train_height = float(cal.get("height_m", TRAIN_HEIGHT))  # the tracked slot's dancer
         self.default_pose = {r: self._default_pose(nets[r]) for r in ("leader", "follower")}
         # Each dancer's rest skeleton, from its (FK-consistent) default pose.
         self.bone_vectors = {r: bone_vectors_from_pose(F.pose_positions(p), F.pose_rotations(p))
@@ -300,6 +326,17 @@ class Synthesizer:
         self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
                                    + bl[JOINT_INDEX[s + "wrist"]] for s in "lr"])
         self.reset()
+
+    def set_role(self, role: str) -> None:
+        """Track a dancer of ``role`` (SPEC §3 ``role``): the networks made for it
+        (:func:`~.nets.load_nets`), from a fresh state."""
+        role = check_role(role)
+        if role == self.role:
+            return
+        if self._given_nets:
+            raise ValueError(f"this synthesizer was given the networks of a {self.role}'s take; "
+                             f"a {role}'s take needs its own")
+        self._build(load_nets(self.options.models, self.options.threads, role), role)
 
     @staticmethod
     def _default_pose(net):
@@ -394,21 +431,22 @@ class Synthesizer:
         without either) the heads seen so far, fixed after the first second so
         that the output skeleton keeps its size."""
         if self.calibration is not None:
-            return self.calibration.scale
+            return self.train_height / self.calibration.height
         if self.height is not None:
-            return TRAIN_HEIGHT / self.height
+            return self.train_height / self.height
         if self._calibration is not None:
             return self._calibration
         if self._head_heights:
-            s = TRAIN_HEIGHT / height_from_head(self._head_heights)
+            s = self.train_height / height_from_head(self._head_heights)
             if len(self._head_heights) >= CALIBRATION_FRAMES:
                 self._calibration = s
             return s
         return 1.0
 
     def output_bone_vectors(self) -> dict:
-        """Each dancer's skeleton at the output's scale (what the poses are made of)."""
-        return {r: bv / self.scale() for r, bv in self.bone_vectors.items()}
+        """Each dancer's skeleton at the output's scale (what the poses are made of), by dance role."""
+        out = {r: bv / self.scale() for r, bv in self.bone_vectors.items()}
+        return out if self.role == "leader" else {"leader": out["follower"], "follower": out["leader"]}
 
     # -- input cleaning --------------------------------------------------------
     def _clean(self, positions, quats, valid):
@@ -503,7 +541,8 @@ class Synthesizer:
         Returns (leader, follower) :class:`DuetFrame` in the take's frame."""
         c = self.calibration
         if c is None:
-            return self._frame(positions, quats, valid)
+            a, b = self._frame(positions, quats, valid)
+            return (b, a) if self.role == "follower" else (a, b)
         positions = np.array(positions, dtype=np.float64)
         quats = np.asarray(quats, dtype=np.float64)
         if c.devices == "openxr":
@@ -513,7 +552,7 @@ class Synthesizer:
         if c.floor_y:
             a.positions[:, 1] += c.floor_y
             b.positions[:, 1] += c.floor_y
-        return a, b
+        return (b, a) if self.role == "follower" else (a, b)
 
     def _frame(self, positions, quats, valid):
         """:meth:`step` on §2 points above a floor at y = 0."""
@@ -553,6 +592,7 @@ class Synthesizer:
         self.prev_leader_pred = (l_roots[0], l_tr[0])
         if self.record_predictions:  # the mapping's output (her roots the placement network's), world, output scale
             pred = to_world(np.stack([l_tr, f_tr]), np.stack([l_roots, f_roots]))
+            pred = pred if self.role == "leader" else pred[::-1]  # (by dance role)
             self.last_prediction = (pred if s == 1.0 else pred * (1.0 / s)).astype(np.float32)
         placement = self._placement
         if placement is not None:
@@ -617,7 +657,8 @@ class Synthesizer:
         ankle, right ball); None without foot locking."""
         if self._lockers is None:
             return None
-        return [[lock is not None for side in locker.locks for lock in side] for locker in self._lockers]
+        out = [[lock is not None for side in locker.locks for lock in side] for locker in self._lockers]
+        return out if self.role == "leader" else out[::-1]
 
     def _recover(self, who, pos, rot, contacts, targets):
         """Of dancer ``who`` (0 leader, 1 follower), after pose recovery (Appendix
@@ -723,7 +764,7 @@ class Synthesizer:
         (:func:`~.calibration.calibrate`)."""
         o = self.options
         return calibrate(take, height=self.height, floor_y=o.floor_y, devices=o.devices, offsets=o.offsets,
-                         head_offset=o.head_offset, hand_offset=o.hand_offset)
+                         head_offset=o.head_offset, hand_offset=o.hand_offset, role=o.role)
 
     def synthesize(self, take, progress=None) -> Duet:
         """Calibrate ``take`` (its devices, the dancer's height, the floor:
@@ -732,6 +773,7 @@ class Synthesizer:
         from .resample import resample_take
 
         calib = self.calibrate(take)
+        self.set_role(calib.role)
         tk = resample_take(apply_calibration(take, calib), F.FPS)
         self.set_calibration(calib)
         T = tk.n_frames
@@ -758,8 +800,11 @@ class Synthesizer:
                 out[k][..., 1] += calib.floor_y
             if preds is not None:
                 preds[..., 1] += np.float32(calib.floor_y)
-        return Duet(tk.time, out["lp"], out["lr"], out["lc"], out["fp"], out["fr"], out["fc"],
-                    bone_vectors=self.output_bone_vectors(), predictions=preds, planted=planted, calibration=calib)
+        slots = [(out["lp"], out["lr"], out["lc"]), (out["fp"], out["fr"], out["fc"])]
+        if self.role == "follower":  # the tracked slot is the follower: back into dance roles
+            slots = slots[::-1]
+        return Duet(tk.time, *slots[0], *slots[1], bone_vectors=self.output_bone_vectors(), predictions=preds,
+                    planted=planted, calibration=calib, tracked_role=self.role)
 
 
 def save_npz(duet: Duet, path) -> None:

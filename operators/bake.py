@@ -224,6 +224,7 @@ def bake_duet(context, duet, take_name, frame_start=1, frame_step=None):
         coll.dancing_points.kind = KIND_DUET
         coll.dancing_points.take_name = take_name
         coll.dancing_points.version = version
+        coll.dancing_points.role = getattr(duet, "tracked_role", "leader")  # whose points were tracked
         rigs = {}
         consistent = {}
         for role in ROLES:

@@ -40,6 +40,12 @@ class DP_CollectionSettings(bpy.types.PropertyGroup):
         description="Standing height of the tracked dancer, for calibration (0: estimate it from the take)",
         default=0.0, min=0.0, soft_max=2.5, unit='LENGTH', precision=3,
     )
+    role: EnumProperty(
+        name="Role", default='leader',
+        description="Whose three points the take holds (SPEC §3 role); the other dancer is synthesised",
+        items=(('leader', "Leader", "The leader's points: the follower is synthesised"),
+               ('follower', "Follower", "The follower's points: the leader is synthesised")),
+    )
     devices: EnumProperty(
         name="Devices", default='joints',
         description="What the take's three poses are (SPEC §3 devices)",

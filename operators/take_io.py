@@ -518,7 +518,7 @@ def take_from_collection(context, coll):
     if exact is not None:
         pos, quats = exact
     time = s.t0 + np.arange(T) / float(s.fps or NET_FPS)
-    meta = {"devices": s.devices}
+    meta = {"devices": s.devices, "role": s.role}
     if s.height > 0:
         meta["height_m"] = float(s.height)
     if s.use_floor_y:
@@ -549,6 +549,13 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         name="Dancer Height", default=0.0, min=0.0, soft_max=2.5, unit='LENGTH', precision=3,
         description="Standing height of the tracked dancer (0: the file's height_m, else estimated)",
     )
+    role: EnumProperty(
+        name="Role", default='FILE',
+        description="Whose three points the take holds (SPEC §3 role); the other dancer is synthesised",
+        items=(('FILE', "From File", "The take's role (a .csv's role=...; else the leader)"),
+               ('leader', "Leader", "The leader's points: the follower is synthesised"),
+               ('follower', "Follower", "The follower's points: the leader is synthesised")),
+    )
     devices: EnumProperty(
         name="Devices", default='FILE',
         description="What the take's three poses are (SPEC §3 devices)",
@@ -574,7 +581,7 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         layout = self.layout
         layout.use_property_split = True
         layout.use_property_decorate = False
-        for prop in ("frame_start", "input_fps", "height", "devices", "units", "update_scene_fps",
+        for prop in ("frame_start", "input_fps", "role", "height", "devices", "units", "update_scene_fps",
                      "update_scene_duration", "keep_source", "axis_forward", "axis_up"):
             layout.prop(self, prop)
 
@@ -623,8 +630,11 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         devices = (take.meta.get("devices") or "joints") if self.devices == 'FILE' else self.devices
         if devices not in ("joints", "openxr"):
             raise InputError(path, f"unknown devices value {devices!r} (expected joints or openxr)")
+        role = (take.meta.get("role") or "leader") if self.role == 'FILE' else self.role
+        if role not in ("leader", "follower"):
+            raise InputError(path, f"unknown role {role!r} (expected leader or follower)")
         settings = dict(source=path, source_type=ext[1:], height=float(take.height or 0.0),
-                        input_fps=float(self.input_fps), source_fps=source_fps, devices=devices,
+                        input_fps=float(self.input_fps), source_fps=source_fps, devices=devices, role=role,
                         axis_forward=self.axis_forward, axis_up=self.axis_up)
         if take.meta.get("floor_y") not in (None, ""):
             try:

@@ -62,6 +62,7 @@ class VIEW3D_PT_dancing_points_take(SubPanel, bpy.types.Panel):
         col = layout.column(align=True)
         col.label(text=take.name, icon='OUTLINER_COLLECTION')
         col.label(text="{:d} frames at {:g} fps from frame {:d}".format(s.n_frames, s.fps, s.frame_start))
+        layout.prop(s, "role")
         layout.prop(s, "devices")
         layout.prop(s, "height")
         row = layout.row(heading="Floor")

@@ -154,3 +154,10 @@ def load_clips(data_dir, split="train", mirror_aug=True, solo_dir=None, cache_di
         np.savez(tmp, **arrays)
         os.replace(tmp, path)
     return clips
+
+
+def swap_roles(clips):
+    """The duet clips with the dancers exchanged (role reversal: the follower
+    in the leader's place, the tracked dancer, and the leader synthesised);
+    clips without a follower are dropped."""
+    return [Clip(c.name, c.follower, c.leader, c.mirrored) for c in clips if c.follower is not None]

@@ -272,6 +272,7 @@ class Scenario:
     offset_error: tuple | None = None
     floor_shift: float = 0.0
     height: float | str | None = None
+    role: str = "leader"  # the take's role (SPEC §6 "reversed": the follower's frames as a role=follower take)
 
     def options(self, seg, **kw) -> SynthesisOptions:
         height = skeleton_height(seg["lead_vec"], seg["ref_vec"]) if self.height == "skeleton" else self.height
@@ -279,7 +280,7 @@ class Scenario:
         if self.offset_error is not None:  # the offsets the take was written with, each one off
             true = DeviceOffsets().at(seg["writer_height"])
             offsets = DeviceOffsets(*(tuple(v) for v in true + np.asarray(self.offset_error)))
-        return SynthesisOptions(height=height, offsets=offsets, **kw)
+        return SynthesisOptions(height=height, offsets=offsets, role=self.role, **kw)
 
 
 def skeleton_height(bone_vectors, reference_vectors) -> float:
@@ -308,6 +309,8 @@ def segment_take(seg, tmpdir, scenario: Scenario = Scenario()):
         take = headset_take(take, motion.rotations[:, list(HAND_BONES)])
     if scenario.floor_shift:
         take.positions[..., 1] += scenario.floor_shift
+    if scenario.role != "leader":
+        take.meta["role"] = scenario.role
     write_take(path, take)
     return read_take(path)
 
@@ -354,6 +357,8 @@ def run_system(factory, segments, tmpdir, fixed=None, scenario=Scenario()):
             synth = factory(seg)
             duet = synth.synthesize(take)
             pl, pf, lr = duet.leader_positions, duet.follower_positions, duet.leader_rotations
+            if duet.tracked_role == "follower":  # scored as tracked ("leader_*") and partner ("follower_*")
+                pl, pf, lr = duet.follower_positions, duet.leader_positions, duet.follower_rotations
             devices = device_rotations(take, duet.calibration)
             placement = getattr(synth, "_placement", None)
             leashed += placement.leashed if placement is not None else 0
@@ -446,14 +451,18 @@ def main(argv=None):
     ap.add_argument("--tracked", choices=("leader", "follower"), default="leader",
                     help="follower: her three points as a leader's take (SPEC §6 'on unseen dancers'; only the "
                          "leader's figures mean anything, and they are hers)")
+    ap.add_argument("--role", choices=("leader", "follower"), default="leader",
+                    help="follower: SPEC §6 'reversed', the follower's frames as a role=follower take; the figures "
+                         "named leader_* are then the tracked dancer's (hers), follower_* the partner's (his)")
     ap.add_argument("--no-device-follow", action="store_true", help="his head and hands not turned as the devices")
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
     args = ap.parse_args(argv)
 
     takes = tuple(args.takes.split(",")) if args.takes else SALSA_TAKES
-    segments = list(test_segments(args.data, takes, args.split, args.tracked))
-    nets = load_nets(args.models)
+    tracked = "follower" if args.role == "follower" else args.tracked
+    segments = list(test_segments(args.data, takes, args.split, tracked))
+    nets = load_nets(args.models, role=args.role)
     error = None
     if args.offset_error:
         axis, metres = args.offset_error.split(":")
@@ -461,7 +470,7 @@ def main(argv=None):
         error["xyz".index(axis[-1])] = float(metres) * (-1.0 if axis.startswith("-") else 1.0)
         error = tuple(error)
     height = args.height if args.height in (None, "skeleton") else float(args.height)
-    scenario = Scenario(args.devices, error, args.floor_shift, height)
+    scenario = Scenario(args.devices, error, args.floor_shift, height, args.role)
     kw = dict(foot_lock=not args.no_foot_lock, follow_devices=not args.no_device_follow, floor_y=args.floor_y)
     opts = lambda seg: scenario.options(seg, **kw)  # noqa: E731
     systems = {"full": lambda seg: Synthesizer(opts(seg), nets=nets)}

@@ -26,9 +26,11 @@ import numpy as np
 import torch
 
 from dancing_points_addon import features as F
+from dancing_points_addon.calibration import HEAD_PERCENTILE, TRAIN_HEIGHT
+from dancing_points_addon.skeleton import TRACKED
 from dancing_points_addon.follower import HIP_BINS
 from dancing_points_addon.nets import MODEL_FILES
-from training.dataset import load_clips
+from training.dataset import load_clips, swap_roles
 
 from .data import (anchor_samples, contact_samples, default_pose, device_offset_clips, floor_levels_of,
                    hip_heading_samples, mapping_samples, noisy_placement_state, placement_samples, rollout_states, time_reverse,
@@ -178,6 +180,10 @@ def main(argv=None):
                     help="trackers: epochs of a second stage on their own closed-loop states (DAgger-style)")
     ap.add_argument("--l2-loss", action="store_true",
                     help="trackers (and ablation (a)) trained with the paper's unsquared L2 losses")
+    ap.add_argument("--tracked", choices=("leader", "follower"), default="leader",
+                    help="whose three points the networks read: the leader's (models/, the default) or the "
+                         "follower's (role reversal, models/follower/: the clips' dancers swapped, so every "
+                         "network is trained as for the leader with the roles exchanged)")
     ap.add_argument("--device-aug", default="none", metavar="OFFSET,SCALE",
                     help="the networks on the mapping's input also learn from a copy of every clip with the "
                          "leader's three points moved by a constant offset of up to OFFSET m per axis of each "
@@ -208,7 +214,18 @@ def main(argv=None):
     log = lambda s: print(s, flush=True)  # noqa: E731
     t_all = time.time()
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
+    lead_head = float(np.percentile(np.concatenate([c.leader.positions[:, TRACKED[0], 1] for c in clips]),
+                                    HEAD_PERCENTILE))
+    if args.tracked == "follower":  # role reversal: her three points in, his motion synthesised
+        clips = swap_roles(clips)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
+    # the tracked dancer's upright head height and the standing height it stands for (calibration.py):
+    # the training leader's is TRAIN_HEIGHT; another dancer's in proportion to their heads
+    head = float(np.percentile(np.concatenate([c.leader.positions[:, TRACKED[0], 1] for c in clips]),
+                               HEAD_PERCENTILE))
+    tracked_meta = {"tracked_role": args.tracked,
+                    "calibration": {"height_m": round(TRAIN_HEIGHT * head / lead_head, 4),
+                                    "head_height_m": round(head, 4)}}
     # the networks on the mapping's input: also the clips as another wearer's headset gives them
     input_clips, input_copies = clips, 1
     if args.device_aug != "none":
@@ -221,9 +238,10 @@ def main(argv=None):
                  and k not in ("data", "out", "cache", "ablations", "only", "threads", "device", "split", "config")}
     report = {"config": args.config, **cfg, "overrides": overrides, "device": device, "split": args.split,
               "models": {}}
-    split_meta = {} if args.split == "train" else {
-        "data_split": "CMU salsa takes 01-13 at 30 Hz, the first 80% of each take's train frames "
-                      "(split 'fit', for comparing recipes); mirror augmented"}
+    split_meta = {"tracked_role": args.tracked}
+    if args.split != "train":
+        split_meta["data_split"] = ("CMU salsa takes 01-13 at 30 Hz, the first 80% of each take's train frames "
+                                    "(split 'fit', for comparing recipes); mirror augmented")
 
     def mapping_like(name, reverse, timewarp):
         """The mapping network (``name`` mapping), or the placement network (the
@@ -349,6 +367,8 @@ def main(argv=None):
             info.update(stage2=info2, seconds=info1["seconds"] + info2["seconds"])
         meta = {"hidden": cfg["track_hidden"], "role": role, "pose_noise": pose_noise, "train": info, **split_meta, **kw,
                 "default_pose": default_pose(x, where, clips)}
+        if role == "leader":  # the tracked dancer's
+            meta.update(tracked_meta)
         meta.update(extra or {})
         export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), meta)

@@ -62,7 +62,7 @@ def job_options(args, model_dir) -> dict:
             "height": args.height, "input_fps": args.input_fps,
             "asf": os.path.abspath(args.asf) if args.asf else None,
             "no_foot_lock": bool(args.no_foot_lock), "no_hand_ik": bool(args.no_hand_ik),
-            "devices": getattr(args, "devices", None), "floor_y": getattr(args, "floor_y", None),
+            "role": getattr(args, "role", None), "devices": getattr(args, "devices", None), "floor_y": getattr(args, "floor_y", None),
             "head_offset": getattr(args, "head_offset", None), "hand_offset": getattr(args, "hand_offset", None),
             "no_device_follow": bool(getattr(args, "no_device_follow", False)),
             "leader_rig": _abs(getattr(args, "leader_rig", None)),

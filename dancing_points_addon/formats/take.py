@@ -356,8 +356,20 @@ def _parse_meta(path, lineno, text, meta):
         if not np.isfinite(h) or h <= 0:
             raise InputError(path, f"height_m must be a positive number of metres, got {value!r}", lineno)
         meta[key] = check_height(path, h, lineno, "height_m")
-    else:
+    elif key == "role" and value.lower() not in ("leader", "follower"):
+        raise InputError(path, f"unknown role {value!r} (expected leader or follower)", lineno)
+    elif key == "devices" and value.lower() not in ("joints", "openxr"):
+        raise InputError(path, f"unknown devices value {value!r} (expected joints or openxr)", lineno)
+    elif key == "floor_y":
+        try:
+            f = float(value)
+        except ValueError:
+            raise InputError(path, f"floor_y is not a number: {value!r}", lineno) from None
+        if not (np.isfinite(f) and abs(f) <= 1.0):
+            raise InputError(path, f"floor_y must be a height in metres within ±1, got {value!r}", lineno)
         meta[key] = value
+    else:
+        meta[key] = value.lower() if key in ("role", "devices") else value
 
 
 def _parse_header(path, lineno, line: bytes):
