@@ -184,11 +184,12 @@ def main(argv=None):
                     help="whose three points the networks read: the leader's (models/, the default) or the "
                          "follower's (role reversal, models/follower/: the clips' dancers swapped, so every "
                          "network is trained as for the leader with the roles exchanged)")
-    ap.add_argument("--device-aug", default="none", metavar="OFFSET,SCALE",
+    ap.add_argument("--device-aug", default="0.03,0.03", metavar="OFFSET,SCALE",
                     help="the networks on the mapping's input also learn from a copy of every clip with the "
                          "leader's three points moved by a constant offset of up to OFFSET m per axis of each "
                          "device and the couple scaled by up to ±SCALE (a wrong body offset or height), their "
-                         "epochs halved (the same steps), e.g. 0.03,0.03; none: not")
+                         "epochs halved (the same steps); default 0.03,0.03 (chosen on val: models/README.md); "
+                         "none: not")
     ap.add_argument("--weights", choices=("int8", "fp32"), default="int8",
                     help="exported weights: int8 (quantised, shipped) or float32")
     args = ap.parse_args(argv)
