@@ -16,7 +16,7 @@ import bpy
 from bpy.props import BoolProperty, StringProperty
 
 from ..dancing_points_addon.errors import InputError, UserError, error_message
-from ..dancing_points_addon.nets import MODEL_DIR, MODEL_ENV, ModelError, load_nets
+from ..dancing_points_addon.nets import MODEL_DIR, MODEL_ENV, ModelError
 from ..dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from . import bake, method_view
 from .props import active_take
@@ -46,12 +46,11 @@ def make_synthesizer(options: SynthesisOptions):
     """A :class:`Synthesizer` for ``options`` (networks from the one cache);
     :class:`ModelError` when the models cannot be loaded."""
     try:
-        nets = load_nets(options.models, options.threads)
+        # the mapping's predictions are kept for the method view (operators/method_view.py); the
+        # networks come from the one cache, those of a follower's take when the take says so
+        return Synthesizer(options, record_predictions=True)
     except InputError as exc:
         raise ModelError(exc.reason + " in " + exc.path) from None
-    try:
-        # the mapping's predictions are kept for the method view (operators/method_view.py)
-        return Synthesizer(options, nets=nets, record_predictions=True)
     except ValueError as exc:
         raise ModelError(str(exc)) from None
 
