@@ -32,7 +32,7 @@ from math import atan2, cos, pi, sin, sqrt
 
 import numpy as np
 
-from .ik import two_bone_ik
+from .ik import mat_mul, mat_vec, two_bone_s
 from .representation import DEVICE_FROM_HEAD
 from .skeleton import JOINT_INDEX
 
@@ -40,13 +40,12 @@ HEAD_LIMIT_DEG = 90.0
 TWIST_LIMIT_DEG = 110.0  # the salsa dancers' forearm twist: -105..73 degrees (0.1..99.9 percentiles, train frames)
 FLEX_LIMIT_DEG = 85.0
 _J = JOINT_INDEX
+_DEVICE_FROM_HEAD = tuple(DEVICE_FROM_HEAD.ravel().tolist())
 
 
-def _quat(R) -> tuple:
-    """One rotation matrix as a unit quaternion ``(w, x, y, z)``, ``w >= 0``."""
-    m00, m01, m02 = R[0]
-    m10, m11, m12 = R[1]
-    m20, m21, m22 = R[2]
+def _quat(m) -> tuple:
+    """A row-major 9-sequence rotation as a unit quaternion ``(w, x, y, z)``, ``w >= 0``."""
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
     tr = m00 + m11 + m22
     if tr > 0.0:
         s = sqrt(tr + 1.0) * 2.0
@@ -63,30 +62,38 @@ def _quat(R) -> tuple:
     return q if q[0] >= 0.0 else tuple(-v for v in q)
 
 
-def _axis_angle(axis, angle) -> np.ndarray:
-    """The rotation matrix of ``angle`` radians about the unit ``axis``."""
+def _axis_angle(axis, angle) -> tuple:
+    """The rotation of ``angle`` radians about the unit ``axis``, row-major 9-tuple."""
     x, y, z = axis
     c, s = cos(angle), sin(angle)
     t = 1.0 - c
-    return np.array([[c + x * x * t, x * y * t - z * s, x * z * t + y * s],
-                     [y * x * t + z * s, c + y * y * t, y * z * t - x * s],
-                     [z * x * t - y * s, z * y * t + x * s, c + z * z * t]])
+    return (c + x * x * t, x * y * t - z * s, x * z * t + y * s,
+            y * x * t + z * s, c + y * y * t, y * z * t - x * s,
+            z * x * t - y * s, z * y * t + x * s, c + z * z * t)
+
+
+def _t(A) -> tuple:
+    """The transpose of a row-major 9-sequence."""
+    return (A[0], A[3], A[6], A[1], A[4], A[7], A[2], A[5], A[8])
 
 
 def twist_angle(R, axis) -> float:
-    """The twist of rotation ``R`` about the unit ``axis`` (swing-twist), radians in (−π, π]."""
-    w, x, y, z = _quat(R)
+    """The twist of rotation ``R`` (row-major 9-sequence or 3 × 3) about the unit
+    ``axis`` (swing-twist), radians in (−π, π]."""
+    w, x, y, z = _quat(np.ravel(R).tolist() if isinstance(R, np.ndarray) else R)
     return 2.0 * atan2(x * axis[0] + y * axis[1] + z * axis[2], w)
 
 
-def limit_rotation(R, limit: float) -> np.ndarray:
-    """``R`` with its angle cut to at most ``limit`` radians about the same axis."""
-    w, x, y, z = _quat(R)
+def limit_rotation(R, limit: float):
+    """``R`` (row-major 9-sequence, or 3 × 3 array: the same kind back) with its
+    angle cut to at most ``limit`` radians about the same axis."""
+    array = isinstance(R, np.ndarray)
+    m = np.ravel(R).tolist() if array else R
+    w, x, y, z = _quat(m)
     n = sqrt(x * x + y * y + z * z)
-    angle = 2.0 * atan2(n, w)
-    if angle <= limit or n < 1e-12:
-        return np.asarray(R, dtype=np.float64)
-    return _axis_angle((x / n, y / n, z / n), limit)
+    if 2.0 * atan2(n, w) > limit and n >= 1e-12:
+        m = _axis_angle((x / n, y / n, z / n), limit)
+    return np.reshape(m, (3, 3)) if array else m
 
 
 class DeviceFollow:
@@ -108,62 +115,75 @@ class DeviceFollow:
             self.sides.append({"clavicle": _J[s + "clavicle"], "humerus": _J[s + "humerus"],
                                "forearm": [_J[s + n] for n in ("radius", "wrist", "hand", "fingers", "thumb")],
                                "radius": _J[s + "radius"], "wrist": _J[s + "wrist"], "hand": _J[s + "hand"],
-                               "moved": [_J[s + "hand"], _J[s + "fingers"], _J[s + "thumb"]],
+                               "turned": [_J[s + n] for n in ("wrist", "hand", "fingers", "thumb")],
                                "flexed": [_J[s + "hand"], _J[s + "fingers"]],
-                               "axis": e / np.linalg.norm(e)})
+                               "axis": tuple((e / np.linalg.norm(e)).tolist())})
 
     def step(self, positions, rotations, head_device=None, hands=(None, None)):
         """``positions (31, 3)``, ``rotations (31, 3, 3)`` (modified in place and
         returned); ``head_device``: the head device's rotation (3, 3) or None;
         ``hands``: per hand the rotation its device measures (of bone
-        ``*wrist`` or ``*hand``, see ``hand_bone``) or None."""
+        ``*wrist`` or ``*hand``, see ``hand_bone``) or None. On Python floats
+        (a handful of 3 × 3 products), one numpy product per bone group."""
         P, R = positions, rotations
+        rows = R.reshape(-1, 9)
         if head_device is not None:
             un, hd, th = _J["upperneck"], _J["head"], _J["thorax"]
-            target = np.asarray(head_device, dtype=np.float64) @ DEVICE_FROM_HEAD
-            R[hd] = R[th] @ limit_rotation(R[th].T @ target, self.limits[0])
-            P[hd] = P[un] + R[hd] @ self.head_vec
+            target = mat_mul(np.ravel(head_device).tolist(), _DEVICE_FROM_HEAD)
+            chest = rows[th].tolist()
+            head = mat_mul(chest, limit_rotation(mat_mul(_t(chest), target), self.limits[0]))
+            rows[hd] = head
+            P[hd] = P[un] + np.reshape(head, (3, 3)) @ self.head_vec
         for side, target in zip(self.sides, hands):
             if target is not None:
-                self._hand(P, R, side, np.asarray(target, dtype=np.float64))
+                self._hand(P, rows, side, np.ravel(target).tolist())
         return P, R
 
-    def _hand(self, P, R, side, target):
+    def _hand(self, P, rows, side, target):
         w, rad = side["wrist"], side["radius"]
-        axis_rest = side["axis"]
+        e = side["axis"]
         if self.hand_bone == "wrist":  # the device gives the forearm's direction
-            self._elbow(P, R, side, target @ axis_rest)
-        d = R[w] @ axis_rest  # the forearm's direction
-        bone = R[w] if self.hand_bone == "wrist" else R[side["hand"]]
-        phi = twist_angle(target @ bone.T, d)
+            self._elbow(P, rows, side, mat_vec(target, *e))
+        Rw = rows[w].tolist()
+        d = mat_vec(Rw, *e)  # the forearm's direction
+        bone = Rw if self.hand_bone == "wrist" else rows[side["hand"]].tolist()
+        phi = twist_angle(mat_mul(target, _t(bone)), d)
         # the forearm end's twist relative to the rest of the forearm, kept within its limit
-        tau = twist_angle(R[rad].T @ R[w], axis_rest)
+        tau = twist_angle(mat_mul(_t(rows[rad].tolist()), Rw), e)
         lim = self.limits[1]
         want = (tau + phi + pi) % (2.0 * pi) - pi  # the new twist, in (-pi, pi]
         phi = min(max(want, -lim), lim) - tau
         if abs(phi) > 1e-9:
-            self._turn(P, R, [w] + side["moved"], _axis_angle(d, phi), P[w])
+            D = _axis_angle(d, phi)
+            Rw = mat_mul(D, Rw)
+            self._turn(P, rows, side["turned"], D, P[w].tolist())
         if self.hand_bone == "hand":
             h = side["hand"]
-            local = limit_rotation(R[w].T @ target, self.limits[2])  # the hand within its limit of the forearm
-            self._turn(P, R, side["flexed"], R[w] @ local @ R[h].T, P[w])
+            local = limit_rotation(mat_mul(_t(Rw), target), self.limits[2])  # within its limit of the forearm
+            self._turn(P, rows, side["flexed"], mat_mul(mat_mul(Rw, local), _t(rows[h].tolist())), P[w].tolist())
 
-    @staticmethod
-    def _elbow(P, R, side, forearm):
+    @classmethod
+    def _elbow(cls, P, rows, side, forearm):
         """Swing the elbow round the shoulder–wrist line towards where a forearm
         pointing along ``forearm`` (unit) would put it; the wrist stays."""
-        hum, fore = side["humerus"], side["forearm"]
-        sh, el, wr = P[side["clavicle"]], P[hum], P[side["wrist"]]
-        pole = wr - forearm * float(np.linalg.norm(wr - el))
-        new_el, _, r1, r2 = two_bone_ik(sh, el, wr, wr, pole)
-        R[hum] = r1 @ R[hum]
-        R[fore] = r2 @ R[fore]
-        P[fore] = new_el + (P[fore] - el) @ r2.T
+        hum = side["humerus"]
+        sh, el, wr = P[side["clavicle"]].tolist(), P[hum].tolist(), P[side["wrist"]].tolist()
+        n = sqrt((wr[0] - el[0]) ** 2 + (wr[1] - el[1]) ** 2 + (wr[2] - el[2]) ** 2)
+        pole = (wr[0] - forearm[0] * n, wr[1] - forearm[1] * n, wr[2] - forearm[2] * n)
+        new_el, _, r1, r2 = two_bone_s(sh, el, wr, wr, pole)
+        rows[hum] = mat_mul(r1, rows[hum].tolist())
+        cls._turn(P, rows, side["forearm"], r2, el)
+        P[side["forearm"]] += np.subtract(new_el, el)
         P[hum] = new_el
 
     @staticmethod
-    def _turn(P, R, bones, D, pivot):
-        """Bones ``bones`` turned by ``D`` about ``pivot`` (their end points move along)."""
-        for b in bones:
-            R[b] = D @ R[b]
-        P[bones] = pivot + (P[bones] - pivot) @ D.T
+    def _turn(P, rows, bones, D, pivot):
+        """Bones ``bones`` turned by ``D`` (row-major 9-tuple) about ``pivot``
+        (their end points move along)."""
+        rows[bones] = [mat_mul(D, r) for r in rows[bones].tolist()]
+        px, py, pz = pivot
+        moved = []
+        for x, y, z in P[bones].tolist():
+            vx, vy, vz = mat_vec(D, x - px, y - py, z - pz)
+            moved.append((px + vx, py + vy, pz + vz))
+        P[bones] = moved

@@ -16,10 +16,12 @@ from .skeleton import LOWER_BODY
 
 MODEL_ENV = "DP_MODEL_DIR"  # environment variable naming a folder of models
 MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "models"))
-# the networks for a follower's take (role reversal: her three points in, his motion out) are in
-# this sub-folder of a models folder, under the same file names: the "leader" files are the
-# tracked dancer's (hers), the "follower" files the synthesised partner's (his)
+# For a follower's take (role reversal: her three points in, his motion out) the networks on
+# the mapping's input are those of this sub-folder of a models folder (same file names, trained
+# with the roles exchanged); the trackers are each dancer's own and serve both roles: the
+# tracked slot ("leader") takes her tracker, the partner slot ("follower") his.
 ROLE_DIRS = {"leader": "", "follower": "follower"}
+TRACKERS = ("leader", "follower")
 MODEL_FILES = {"mapping": "mapping.onnx", "placement": "placement.onnx", "contacts": "contacts.onnx",
                "anchor": "pose_anchor.onnx", "hip": "hip_heading.onnx", "leader": "tracker_leader.onnx",
                "follower": "tracker_follower.onnx"}
@@ -86,18 +88,26 @@ class OnnxNet:
 
 
 def resolve_model_dir(explicit=None, role: str = "leader") -> str:
-    """The models folder: ``explicit`` > ``$DP_MODEL_DIR`` > the bundled ``models/``
-    (for a follower's take its sub-folder ``follower/``, :data:`ROLE_DIRS`);
-    an :class:`InputError` naming it when a network file is missing."""
+    """The models folder: ``explicit`` > ``$DP_MODEL_DIR`` > the bundled ``models/``;
+    an :class:`InputError` naming it when a network file is missing (for a
+    follower's take, also in its sub-folder :data:`ROLE_DIRS`)."""
     d = explicit or os.environ.get(MODEL_ENV, "") or MODEL_DIR
     d = os.path.abspath(os.path.expanduser(d))
-    if ROLE_DIRS[role]:
-        d = os.path.join(d, ROLE_DIRS[role])
-    missing = [f for f in MODEL_FILES.values() if not os.path.isfile(os.path.join(d, f))]
+    paths = model_paths(d, role)
+    missing = [os.path.relpath(p, d) for p in paths.values() if not os.path.isfile(p)]
     if missing:
         what = "synthesis models" if role == "leader" else f"models for a {role}'s take"
         raise InputError(d, f"no {what} here (missing {', '.join(missing)})")
     return d
+
+
+def model_paths(d: str, role: str = "leader") -> dict:
+    """``{kind: path}`` of the networks of a models folder ``d`` for takes of ``role``."""
+    if role == "leader":
+        return {k: os.path.join(d, f) for k, f in MODEL_FILES.items()}
+    paths = {k: os.path.join(d, ROLE_DIRS[role], f) for k, f in MODEL_FILES.items() if k not in TRACKERS}
+    paths.update(leader=os.path.join(d, MODEL_FILES["follower"]), follower=os.path.join(d, MODEL_FILES["leader"]))
+    return paths
 
 
 def _load_one(path: str, threads: int) -> OnnxNet:
@@ -121,7 +131,7 @@ def load_nets(model_dir=None, threads: int = 1, role: str = "leader") -> dict:
     loaded once per process, role and thread count (and again when a file
     changes). :class:`ModelError` when they cannot be loaded."""
     d = resolve_model_dir(model_dir, role)
-    paths = {k: os.path.join(d, f) for k, f in MODEL_FILES.items()}
+    paths = model_paths(d, role)
     key = (d, max(1, int(threads)), tuple(os.path.getmtime(p) for p in paths.values()))
     with _CACHE_LOCK:
         nets = _CACHE.get(key)
@@ -145,13 +155,14 @@ def check_models(model_dir=None, threads: int = 1, role: str = "leader") -> str:
 
     nets = load_nets(model_dir, threads, role)
     d = resolve_model_dir(model_dir, role)
+    paths = model_paths(d, role)
     want = F.layout()
     ins = {"leader": "track_in", "follower": "track_in"}
     if "state_lags" in nets["placement"].meta:  # (train --placement-state: her own placement beside the lead)
         ins["placement"] = "place_in"
     sizes = {k: (want[ins.get(k, "map_in")], None) for k in MODEL_FILES}
     for kind, net in nets.items():
-        path = os.path.join(d, MODEL_FILES[kind])
+        path = paths[kind]
         try:
             layout = json.loads(net.meta.get("layout", "null"))
         except ValueError:

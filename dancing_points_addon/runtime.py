@@ -282,7 +282,7 @@ class Synthesizer:
         self.nets = nets
         self.role = role
         follower = self.follower_options
-        cal = _meta_json(nets["leader"], "calibration") or {}
+        cal = _meta_json(nets["mapping"], "calibration") or {}
         self.train_height = float(cal.get("height_m", TRAIN_HEIGHT))  # the tracked slot's dancer
         self.default_pose = {r: self._default_pose(nets[r]) for r in ("leader", "follower")}
         # Each dancer's rest skeleton, from its (FK-consistent) default pose.

@@ -182,8 +182,9 @@ def main(argv=None):
                     help="trackers (and ablation (a)) trained with the paper's unsquared L2 losses")
     ap.add_argument("--tracked", choices=("leader", "follower"), default="leader",
                     help="whose three points the networks read: the leader's (models/, the default) or the "
-                         "follower's (role reversal, models/follower/: the clips' dancers swapped, so every "
-                         "network is trained as for the leader with the roles exchanged)")
+                         "follower's (role reversal, models/follower/: the clips' dancers swapped, so the "
+                         "networks on the mapping's input learn her lead and his answer; the trackers are each "
+                         "dancer's own and serve both roles, so none is trained)")
     ap.add_argument("--device-aug", default="0.03,0.03", metavar="OFFSET,SCALE",
                     help="the networks on the mapping's input also learn from a copy of every clip with the "
                          "leader's three points moved by a constant offset of up to OFFSET m per axis of each "
@@ -240,6 +241,9 @@ def main(argv=None):
     report = {"config": args.config, **cfg, "overrides": overrides, "device": device, "split": args.split,
               "models": {}}
     split_meta = {"tracked_role": args.tracked}
+    if args.tracked == "follower":  # the trackers belong to the dancers, not the roles: models/ holds them
+        only -= {"leader", "follower", "vanilla", "pastinput"}
+        split_meta.update(tracked_meta)
     if args.split != "train":
         split_meta["data_split"] = ("CMU salsa takes 01-13 at 30 Hz, the first 80% of each take's train frames "
                                     "(split 'fit', for comparing recipes); mirror augmented")
@@ -368,8 +372,6 @@ def main(argv=None):
             info.update(stage2=info2, seconds=info1["seconds"] + info2["seconds"])
         meta = {"hidden": cfg["track_hidden"], "role": role, "pose_noise": pose_noise, "train": info, **split_meta, **kw,
                 "default_pose": default_pose(x, where, clips)}
-        if role == "leader":  # the tracked dancer's
-            meta.update(tracked_meta)
         meta.update(extra or {})
         export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), meta)
