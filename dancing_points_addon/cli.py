@@ -168,7 +168,7 @@ def cmd_benchmark(args) -> int:
     from .benchmark import report, run
 
     res = run(frames=args.frames, threads=args.threads, model_dir=args.models,
-              foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik)
+              foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik, compute=args.compute)
     print(report(res))
     return EXIT_OK
 
@@ -185,6 +185,9 @@ def _parser_benchmark(sub) -> None:
                    help="folder with the ONNX models (default: $DP_MODEL_DIR, else the bundled models/)")
     p.add_argument("--no-foot-lock", action="store_true")
     p.add_argument("--no-hand-ik", action="store_true")
+    p.add_argument("--compute", choices=("float", "int8"), default="float",
+                   help="how the int8 networks multiply: float (the default everywhere) or int8 (ONNX Runtime's "
+                        "int8 input quantisation)")
     p.set_defaults(func=cmd_benchmark)
 
 

@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """The preview stage: one collection "DP Stage" in the scene with a checker
 floor at the dancers' floor level, the "DP Camera" on its "DP Camera Rig"
-(the rig follows the couple, or holds a fixed wide shot:
+(the rig follows the couple, turning slowly round it so that neither dancer
+hides the other, or holds a fixed wide shot:
 ``Scene.dancing_points.camera_mode``), a sun when the scene
 has no light, and a light world when the scene has none.
 
@@ -90,7 +91,10 @@ def plan(scene, leader_positions, follower_positions, sample_frames, fov):
     at_frames = cp.interpolate_frames(pts, sample_frames, frames)
     view = view_direction(lead)
     aspect = _aspect(scene)
-    path = cp.follow_camera(at_frames, fov, aspect, view, fps=scene_fps(scene))
+    n = lead.shape[1]
+    # the side it looks from turns slowly, so that neither dancer hides the other
+    sides = cp.visible_directions(at_frames[:, :n], at_frames[:, n:], view, fps=scene_fps(scene))
+    path = cp.follow_camera(at_frames, fov, aspect, sides, fps=scene_fps(scene))
     wide_loc, wide_rot = bm.frame_camera(pts[:: max(1, len(pts) // 200)].reshape(-1, 3), view, fov, aspect)
     floor_z = float(np.mean([cp.floor_level(p[:, FOOT_JOINTS, 1]) for p in (lead, foll)]))
     flat = pts.reshape(-1, 3)
@@ -169,8 +173,8 @@ def _camera(stage, created):
 
 
 def _key_follow(cam, frames, path, created):
-    """A new "DP Camera Follow" action on the rig ``cam``: the path's location on
-    every frame (bulk)."""
+    """A new "DP Camera Follow" action on the rig ``cam``: the path's location and
+    rotation (quaternion) on every frame (bulk)."""
     old = bpy.data.actions.get(cam.get(FOLLOW_PROP, "")) if cam.get(FOLLOW_PROP) else None
     action, slot = compat.new_action_for(cam, "DP Camera Follow")
     _new(created, action)
@@ -179,6 +183,10 @@ def _key_follow(cam, frames, path, created):
     for i in range(3):
         compat.write_keys(compat.ensure_fcurves(action, slot, "location", i, "DP Camera"),
                           frames, path.locations[:, i])
+    quats = bm.continuous_quats(bm.matrix_to_quat(path.rotations))
+    for i in range(4):
+        compat.write_keys(compat.ensure_fcurves(action, slot, "rotation_quaternion", i, "DP Camera"),
+                          frames, quats[:, i])
     cam[FOLLOW_PROP] = action.name
     if old is not None and old != action and _role(old) == "action":
         bpy.data.actions.remove(old)
@@ -228,7 +236,7 @@ def ensure_stage(context, leader_positions, follower_positions, sample_frames, c
     _floor(stage, p["floor"], created)
     rig, cam = _camera(stage, created)
     path = p["path"]
-    rot = Matrix(path.rotation.tolist())
+    rot = Matrix(path.rotations[0].tolist())
     rig.rotation_mode = 'QUATERNION'
     rig.rotation_quaternion = rot.to_quaternion()
     rig[ROT_PROP] = list(rig.rotation_quaternion)
@@ -259,6 +267,7 @@ def ensure_stage(context, leader_positions, follower_positions, sample_frames, c
     scene.frame_end = int(p["frames"][-1])
     stage["dp_camera_max_accel"] = path.max_accel
     stage["dp_camera_max_speed"] = path.max_speed
+    stage["dp_camera_max_turn_rate"] = path.max_turn_rate
     stage["dp_floor_z"] = p["floor_z"]
     return stage, p
 

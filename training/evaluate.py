@@ -322,13 +322,15 @@ def main(argv=None):
                          "every tracked position (e.g. 0.001)")
     ap.add_argument("--noise-draws", type=int, default=1)
     ap.add_argument("--only-full", action="store_true", help="score the full system only (no ablations)")
+    ap.add_argument("--compute", choices=("float", "int8"), default=None,
+                    help="how the int8 networks multiply (default: the runtime's, float; see nets.COMPUTE_MODES)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
     args = ap.parse_args(argv)
 
     takes = tuple(args.takes.split(",")) if args.takes else SALSA_TAKES
     segments = list(test_segments(args.data, takes, args.split))
-    nets = load_nets(args.models)
+    nets = load_nets(args.models, compute=args.compute)
     opts = SynthesisOptions(foot_lock=not args.no_foot_lock)
     systems = {"full": lambda: Synthesizer(opts, nets=nets)}
     partial = {}
@@ -337,7 +339,8 @@ def main(argv=None):
             paths = {r: os.path.join(args.ablations, f"{tag}_{r}.onnx") for r in ("leader", "follower")}
             paths = {r: p for r, p in paths.items() if os.path.exists(p)}
             if paths:  # an ablation trained for one dancer only keeps the full model's other tracker
-                abl = dict(nets, **{r: OnnxNet(p) for r, p in paths.items()})
+                abl = dict(nets, **{r: OnnxNet(p, compute=next(iter(nets.values())).compute)
+                                    for r, p in paths.items()})
                 partial[tag] = sorted(set(("leader", "follower")) - set(paths))
                 cls = PastInputSynth if tag == "pastinput" else Synthesizer
                 if tag == "pastinput" and "follower" in partial[tag]:
