@@ -36,7 +36,8 @@ from .errors import InputError
 def add_input_arguments(p: argparse.ArgumentParser) -> None:
     """INPUT and the options every input-reading command takes (SPEC §7)."""
     p.add_argument("input", metavar="INPUT",
-                   help="take file (.csv), BVH file (.bvh) or CMU AMC file (.amc)")
+                   help="take file (.csv), BVH file (.bvh), CMU AMC file (.amc) or FBX file (.fbx, read by "
+                        "Blender's importer: needs the bpy module)")
     p.add_argument("--input-fps", type=positive_float, default=None, metavar="F",
                    help="override the input's frame rate (for a .csv: ignore its time "
                         "column and use t0 + k/F)")
