@@ -310,8 +310,9 @@ def _character(obj):
 def find_obstacles(scene, leader_positions, follower_positions, margin=0.05):
     """The user's objects standing where the dancers dance: shown in renders,
     with a body (a mesh, curve, text...), and whose world bounding box (grown by
-    ``margin`` m) holds some joint of either dancer on some frame (motion-space
-    positions ``(T, 31, 3)``). Sorted by name."""
+    ``margin`` m sideways) holds some joint of either dancer on some frame, at
+    least ``margin`` below its top (motion-space positions ``(T, 31, 3)``; a floor
+    under their feet is not in the way). Sorted by name."""
     pts = bm.to_blender(np.concatenate([np.asarray(leader_positions, dtype=np.float64),
                                         np.asarray(follower_positions, dtype=np.float64)], axis=1))
     pts = pts[:: max(1, len(pts) // 300)].reshape(-1, 3)
@@ -323,7 +324,10 @@ def find_obstacles(scene, leader_positions, follower_positions, margin=0.05):
         if obj.hide_render or _ours(obj) or _character(obj):
             continue
         corners = np.array([list(c) + [1.0] for c in obj.bound_box]) @ np.array(obj.matrix_world).T
-        lo, hi = corners[:, :3].min(0) - margin, corners[:, :3].max(0) + margin
+        lo, hi = corners[:, :3].min(0), corners[:, :3].max(0)
+        lo[:2] -= margin
+        hi[:2] += margin
+        hi[2] -= margin
         if len(pts) and bool(np.all((pts >= lo) & (pts <= hi), axis=1).any()):
             found.append(obj.name)
     return sorted(found)

@@ -212,6 +212,8 @@ def test_first_preview_in_blenders_startup_scene(tmp_path):
     scene = bpy.context.scene
     assert sorted(o.name for o in scene.objects) == ["Camera", "Cube", "Light"]
     camera, cube = scene.objects["Camera"], scene.objects["Cube"]
+    bpy.ops.mesh.primitive_plane_add(size=30.0)  # a floor of the user's under their feet is not in the way
+    bpy.context.active_object.name = "My Floor"
     before = np.array(camera.matrix_world), camera.data.lens
     assert bpy.ops.dancing_points.import_take(filepath=str(SAMPLE)) == {'FINISHED'}
     assert bpy.ops.dancing_points.synthesize(model_dir=MODELS, take=TAKE) == {'FINISHED'}
