@@ -110,7 +110,8 @@ class _Floor:
         return times
 
 
-def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True, hand_ik=True, blocks=10):
+def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True, hand_ik=True, blocks=10,
+        compute=None):
     """Time ``frames`` duet frames of the loop and as many passes of the compute
     floor, interleaved in ``blocks`` (a shared machine's speed drifts: the ratio
     compares the two under the same conditions)."""
@@ -119,7 +120,7 @@ def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True
 
     model_dir = resolve_model_dir(model_dir)
     clocks = {"networks": [0.0], "recovery": [0.0]}
-    nets = {k: _Timed(net, clocks["networks"]) for k, net in load_nets(model_dir, threads).items()}
+    nets = {k: _Timed(net, clocks["networks"]) for k, net in load_nets(model_dir, threads, compute=compute).items()}
     synth = _TimedSynth(SynthesisOptions(foot_lock=foot_lock, hand_ik=hand_ik), nets=nets, clocks=clocks)
     take = resample_take(read_take(take_path))
     valid = take.valid
@@ -148,7 +149,7 @@ def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True
     floor_s = float(np.median(np.concatenate(floor_t)))
     per = {name: arr / 2.0 * 1000.0 for name, arr in
            (("total", total), ("networks", net_t), ("recovery", rec_t), ("features", total - net_t - rec_t))}
-    return {"frames": frames, "threads": threads,
+    return {"frames": frames, "threads": threads, "compute": next(iter(nets.values())).net.compute,
             "median_ms": {k: float(np.median(v)) for k, v in per.items()},
             "p99_ms": {k: float(np.percentile(v, 99)) for k, v in per.items()},
             "floor_ms": floor_s / 2.0 * 1000.0, "macs_per_frame": floor.macs,
@@ -157,7 +158,7 @@ def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True
 
 def report(res) -> str:
     lines = [f"latency per character-frame over {res['frames']} duet frames, batch 1, "
-             f"{res['threads']} onnxruntime thread(s):",
+             f"{res['threads']} onnxruntime thread(s), networks multiplied in {res['compute']}:",
              f"  {'':12s} {'median':>9s} {'p99':>9s}"]
     for k in ("total", "features", "networks", "recovery"):
         lines.append(f"  {k:12s} {res['median_ms'][k]:8.3f}ms {res['p99_ms'][k]:8.3f}ms")

@@ -1,8 +1,10 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """A camera that follows the couple (numpy only; the Blender side keys it).
 
-The camera keeps a fixed viewing direction (the side ``view_dir``, a slight
-elevation) and only moves: its position in its own axes ``(a, b, e)`` (right,
+The camera looks at the couple from a side that turns slowly with them
+(:func:`visible_directions`: the side from which neither dancer hides the
+other, turning no faster than ``max_turn`` degrees a second; or a fixed
+``view_dir``), at a slight elevation. Its position in its own axes ``(a, b, e)`` (right,
 up, back) is a zero-phase smoothed version of where it should be on each frame
 (centred on the couple, at the distance where the couple fills ``fill`` of the
 frame height, far enough for every point to be inside the frame with a
@@ -38,7 +40,7 @@ GAIN = 1.0
 @dataclass
 class CameraPath:
     locations: np.ndarray      # (T, 3) camera positions, Blender space
-    rotation: np.ndarray       # (3, 3) camera-to-world rotation (constant)
+    rotations: np.ndarray      # (T, 3, 3) camera-to-world rotation of each frame
     max_accel: float           # m/s², the largest |second derivative| of the path
     max_speed: float           # m/s
     iterations: int            # correction passes used
@@ -46,22 +48,121 @@ class CameraPath:
     min_fill: float            # smallest projected couple height / frame height
     max_centre: float          # largest |centre| (NDC units: 1 = half the width)
     max_extent: float          # largest |x| or |y| of a point (NDC; <= 1: inside)
+    max_turn_rate: float = 0.0   # deg/s, the view direction's fastest turn
+    max_turn_accel: float = 0.0  # deg/s², its largest angular acceleration
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """The first frame's rotation (all of them, for a camera that does not turn)."""
+        return self.rotations[0]
 
 
 def view_rotation(view_dir, elevation_deg: float = 10.0) -> np.ndarray:
     """Camera-to-world rotation ``(3, 3)`` looking horizontally against
     ``view_dir`` (from the target towards the camera), tilted down by
-    ``elevation_deg``."""
-    v = np.asarray(view_dir, dtype=np.float64).copy()
-    v[2] = 0.0
-    n = np.linalg.norm(v)
-    v = v / n if n > 1e-9 else np.array([0.0, -1.0, 0.0])
+    ``elevation_deg``; ``(T, 3, 3)`` for directions ``(T, 3)``."""
+    v = np.array(view_dir, dtype=np.float64)
+    v[..., 2] = 0.0
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    v = np.where(n > 1e-9, v / np.maximum(n, 1e-12), np.array([0.0, -1.0, 0.0]))
     el = np.deg2rad(elevation_deg)
     z = v * np.cos(el) + np.array([0.0, 0.0, np.sin(el)])
     x = np.cross([0.0, 0.0, 1.0], z)
-    x /= np.linalg.norm(x)
+    x /= np.linalg.norm(x, axis=-1, keepdims=True)
     y = np.cross(z, x)
-    return np.stack([x, y, z], axis=1)
+    return np.stack([x, y, z], axis=-1)
+
+
+def _heading(v):
+    return np.arctan2(v[..., 1], v[..., 0])
+
+
+def uncovered_shares(leader_points, follower_points, headings):
+    """``(T, K)``: the share of the farther dancer's box (the bounding box of his
+    or her points in the image) that the nearer dancer's box leaves uncovered,
+    seen from each horizontal heading ``(K,)`` (radians, the direction from the
+    couple towards the camera; an orthographic view: the boxes' widths across
+    the view and their heights). Points ``(T, N, 3)``, Blender space, NaN ignored."""
+    th = np.asarray(headings, dtype=np.float64)
+    across = np.stack([-np.sin(th), np.cos(th)], axis=1)  # the image's x axis, (K, 2)
+    towards = np.stack([np.cos(th), np.sin(th)], axis=1)
+    out = []
+    with np.errstate(all="ignore"):
+        for lo in range(0, len(leader_points), 256):  # (T, N, K) a chunk at a time: any length of take
+            L = np.asarray(leader_points[lo:lo + 256], dtype=np.float64)
+            Fo = np.asarray(follower_points[lo:lo + 256], dtype=np.float64)
+            xl, xf = L[..., :2] @ across.T, Fo[..., :2] @ across.T
+            nearer_l = np.nanmean(L[..., :2] @ towards.T, axis=1) > np.nanmean(Fo[..., :2] @ towards.T, axis=1)
+            l0, l1, f0, f1 = np.nanmin(xl, 1), np.nanmax(xl, 1), np.nanmin(xf, 1), np.nanmax(xf, 1)
+            zl0, zl1 = np.nanmin(L[..., 2], 1)[:, None], np.nanmax(L[..., 2], 1)[:, None]
+            zf0, zf1 = np.nanmin(Fo[..., 2], 1)[:, None], np.nanmax(Fo[..., 2], 1)[:, None]
+            ox = np.clip(np.minimum(l1, f1) - np.maximum(l0, f0), 0.0, None)
+            oy = np.clip(np.minimum(zl1, zf1) - np.maximum(zl0, zf0), 0.0, None)
+            far = np.where(nearer_l, (f1 - f0) * (zf1 - zf0), (l1 - l0) * (zl1 - zl0))
+            u = 1.0 - ox * oy / np.maximum(far, 1e-9)
+            out.append(np.where(np.isfinite(u), u, 1.0))
+    return np.concatenate(out) if out else np.zeros((0, len(th)))
+
+
+def visible_directions(leader_points, follower_points, view_dir, fps: float = 30.0, *, step_deg: float = 1.0,
+                       turn_cost: float = 0.2, prior: float = 0.05, sigma_s: float = 1.0,
+                       max_turn: float = 25.0):
+    """Per frame a horizontal view direction ``(T, 3)`` (from the couple towards
+    the camera, Blender space) from which neither dancer hides the other, turning
+    slowly: a path over the headings ``step_deg`` apart, at most one step a
+    frame, that minimises over the take the frames where less than 60 % of
+    the farther dancer's box is uncovered (:func:`uncovered_shares`; a cost
+    rising from 0 at 60 % uncovered to 1 at 40 %), plus ``turn_cost`` per step
+    turned and ``prior`` (per half turn) for looking away from ``view_dir``
+    (dynamic programming); then smoothed by a zero-phase Gaussian of
+    ``sigma_s`` seconds, and more until it turns no faster than ``max_turn``
+    degrees a second (so the angular acceleration is bounded too).
+    Points ``(T, N, 3)`` of each dancer, Blender space, NaN ignored."""
+    T = len(leader_points)
+    K = max(int(round(360.0 / step_deg)), 4)
+    th = np.arange(K) * (2.0 * np.pi / K)
+    vd = np.asarray(view_dir, dtype=np.float64)
+    h0 = float(_heading(vd))
+    cost = np.clip((0.6 - uncovered_shares(leader_points, follower_points, th)) / 0.2, 0.0, 1.0)
+    cost += prior * np.abs(np.angle(np.exp(1j * (th - h0)))) / np.pi
+    if T == 0:
+        return np.zeros((0, 3))
+    total = cost[0].copy()
+    back = np.empty((T, K), dtype=np.int64)
+    moves = np.array([-1, 0, 1])
+    ks = np.arange(K)
+    for t in range(1, T):
+        cand = np.stack([np.roll(total, m) + turn_cost * abs(m) for m in moves])  # cand[j, k]: from k - moves[j]
+        j = cand.argmin(0)
+        back[t] = (ks - moves[j]) % K
+        total = cand[j, ks] + cost[t]
+    k = int(total.argmin())
+    idx = np.empty(T, dtype=np.int64)
+    for t in range(T - 1, -1, -1):
+        idx[t] = k
+        k = back[t, k]
+    theta = np.unwrap(th[idx])
+    sig = sigma_s * fps
+    theta = smooth(theta, sig)
+    limit = np.deg2rad(max_turn) / fps
+    for _ in range(60):
+        if T < 2 or np.abs(np.diff(theta)).max() <= limit:
+            break
+        sig *= 1.3
+        theta = smooth(theta, sig)
+    return np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], axis=1)
+
+
+def turn_rates(rotations, fps: float = 30.0):
+    """The view direction's largest angular speed (deg/s) and acceleration (deg/s²)
+    over rotations ``(T, 3, 3)`` (about the vertical: the camera's heading)."""
+    z = np.asarray(rotations)[:, :, 2]
+    h = np.unwrap(np.arctan2(z[:, 1], z[:, 0]))
+    if len(h) < 2:
+        return 0.0, 0.0
+    v = np.diff(h) * fps
+    a = np.diff(v) * fps if len(v) > 1 else np.zeros(1)
+    return float(np.rad2deg(np.abs(v).max())), float(np.rad2deg(np.abs(a).max()))
 
 
 def half_tangents(fov: float, aspect: float):
@@ -73,9 +174,9 @@ def half_tangents(fov: float, aspect: float):
 def project(points, locations, rotation, fov: float, aspect: float):
     """Normalised device coordinates ``(T, N, 2)`` (−1..1 across the frame, y up)
     and depth ``(T, N)`` of ``points (T, N, 3)`` seen by cameras at
-    ``locations (T, 3)`` with ``rotation``."""
+    ``locations (T, 3)`` with ``rotation`` ``(3, 3)`` or one per frame ``(T, 3, 3)``."""
     tx, ty = half_tangents(fov, aspect)
-    q = (np.asarray(points, np.float64) - np.asarray(locations, np.float64)[:, None]) @ rotation
+    q = (np.asarray(points, np.float64) - np.asarray(locations, np.float64)[:, None]) @ np.asarray(rotation)
     depth = -q[..., 2]
     d = np.where(depth > 1e-9, depth, np.nan)
     return np.stack([q[..., 0] / (d * tx), q[..., 1] / (d * ty)], axis=-1), depth
@@ -140,7 +241,9 @@ def follow_camera(points, fov: float, aspect: float, view_dir, fps: float = 30.0
                   margin: float = 0.88, centre_limit: float = 0.2, sigma_s: float = 1.0,
                   max_iter: int = 40) -> CameraPath:
     """A camera path following ``points (T, N, 3)`` (Blender space; both
-    dancers' joints, NaN where unknown) at ``fps`` frames per second.
+    dancers' joints, NaN where unknown) at ``fps`` frames per second, looking
+    against ``view_dir``: one direction ``(3,)`` for the whole take, or one per
+    frame ``(T, 3)`` (:func:`visible_directions`).
 
     ``fill``: the wanted projected height of the couple (fraction of the frame
     height); ``min_fill``, ``margin``, ``centre_limit``: the constraints every
@@ -150,7 +253,10 @@ def follow_camera(points, fov: float, aspect: float, view_dir, fps: float = 30.0
     if P.ndim != 3 or P.shape[-1] != 3 or len(P) == 0:
         raise ValueError("points must be (T, N, 3) with T >= 1")
     P, ok = _fill_gaps(P)
-    R = view_rotation(view_dir, elevation_deg)
+    vd = np.asarray(view_dir, dtype=np.float64)
+    if vd.ndim == 2 and len(vd) != len(P):
+        raise ValueError("view_dir must be (3,) or one direction per frame")
+    R = np.ascontiguousarray(np.broadcast_to(view_rotation(vd, elevation_deg), (len(P), 3, 3)))
     tx, ty = half_tangents(fov, aspect)
     Q = P @ R  # camera-aligned coordinates (u right, v up, w back)
     Q = np.where(ok[..., None], Q, np.nan)
@@ -172,7 +278,7 @@ def follow_camera(points, fov: float, aspect: float, view_dir, fps: float = 30.0
     want = np.stack([a0, b0, e0], axis=1)
 
     def check(cam):
-        locs = cam @ R.T
+        locs = np.einsum("tij,tj->ti", R, cam)
         ndc, _ = project(P, locs, R, fov, aspect)
         ndc = np.where(ok[..., None], ndc, np.nan)
         with np.errstate(all="ignore"):
@@ -216,9 +322,10 @@ def follow_camera(points, fov: float, aspect: float, view_dir, fps: float = 30.0
     dt = 1.0 / fps
     vel = np.diff(locs, axis=0) / dt if T > 1 else np.zeros((1, 3))
     acc = np.diff(locs, 2, axis=0) / dt ** 2 if T > 2 else np.zeros((1, 3))
+    rate, turn_acc = turn_rates(R, fps)
     return CameraPath(locs, R, float(np.linalg.norm(acc, axis=1).max()),
                       float(np.linalg.norm(vel, axis=1).max()), it, float(sig), float(np.nanmin(fl)),
-                      float(np.nanmax(np.abs(cx))), float(np.max(ext)))
+                      float(np.nanmax(np.abs(cx))), float(np.max(ext)), rate, turn_acc)
 
 
 def interpolate_frames(values, sample_frames, frames):

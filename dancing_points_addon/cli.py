@@ -36,7 +36,8 @@ from .errors import InputError
 def add_input_arguments(p: argparse.ArgumentParser) -> None:
     """INPUT and the options every input-reading command takes (SPEC §7)."""
     p.add_argument("input", metavar="INPUT",
-                   help="take file (.csv), BVH file (.bvh) or CMU AMC file (.amc)")
+                   help="take file (.csv), BVH file (.bvh), CMU AMC file (.amc) or FBX file (.fbx, read by "
+                        "Blender's importer: needs the bpy module)")
     p.add_argument("--input-fps", type=positive_float, default=None, metavar="F",
                    help="override the input's frame rate (for a .csv: ignore its time "
                         "column and use t0 + k/F)")
@@ -190,7 +191,7 @@ def cmd_benchmark(args) -> int:
     from .benchmark import report, run
 
     res = run(frames=args.frames, threads=args.threads, model_dir=args.models,
-              foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik)
+              foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik, compute=args.compute)
     print(report(res))
     return EXIT_OK
 
@@ -207,6 +208,9 @@ def _parser_benchmark(sub) -> None:
                    help="folder with the ONNX models (default: $DP_MODEL_DIR, else the bundled models/)")
     p.add_argument("--no-foot-lock", action="store_true")
     p.add_argument("--no-hand-ik", action="store_true")
+    p.add_argument("--compute", choices=("float", "int8"), default="float",
+                   help="how the int8 networks multiply: float (the default everywhere) or int8 (ONNX Runtime's "
+                        "int8 input quantisation)")
     p.set_defaults(func=cmd_benchmark)
 
 

@@ -22,6 +22,13 @@ MODEL_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file
 # tracked slot ("leader") takes her tracker, the partner slot ("follower") his.
 ROLE_DIRS = {"leader": "", "follower": "follower"}
 TRACKERS = ("leader", "follower")
+# How the int8 networks multiply: "float", their 8-bit weights dequantized and multiplied in float32
+# (``onnx_float``: the output a smooth function of the input, so 2 µm on a tracked point moves no
+# joint by more than a fraction of a millimetre), or "int8", as the files say (ONNX Runtime
+# quantises each layer's input to int8: about half the networks' time, but 2 µm of input can
+# change a frame's output by a millimetre and the rest of the take by centimetres)
+COMPUTE_MODES = ("float", "int8")
+DEFAULT_COMPUTE = "float"
 MODEL_FILES = {"mapping": "mapping.onnx", "placement": "placement.onnx", "contacts": "contacts.onnx",
                "anchor": "pose_anchor.onnx", "hip": "hip_heading.onnx", "leader": "tracker_leader.onnx",
                "follower": "tracker_follower.onnx"}
@@ -46,18 +53,28 @@ class ModelError(UserError):
 
 
 class OnnxNet:
-    """One ONNX network on onnxruntime's CPU provider, batch 1."""
+    """One ONNX network on onnxruntime's CPU provider, batch 1; ``compute``: see
+    :data:`COMPUTE_MODES` (a network without 8-bit weights runs as it is)."""
 
-    def __init__(self, path: str, threads: int = 1):
+    def __init__(self, path: str, threads: int = 1, compute: str = DEFAULT_COMPUTE):
         import onnxruntime as ort  # imported lazily: the core stays importable without it
 
+        if compute not in COMPUTE_MODES:
+            raise ValueError(f"compute must be one of {COMPUTE_MODES}, not {compute!r}")
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = max(1, int(threads))
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         self.path = path
-        self.session = ort.InferenceSession(path, sess_options=opts, providers=["CPUExecutionProvider"])
+        self.compute = compute
+        model = path
+        if compute == "float":
+            from .onnx_float import float_compute
+
+            with open(path, "rb") as f:
+                model = float_compute(f.read())
+        self.session = ort.InferenceSession(model, sess_options=opts, providers=["CPUExecutionProvider"])
         self.meta = dict(self.session.get_modelmeta().custom_metadata_map)
         self.input = self.session.get_inputs()[0].name
         self.output = self.session.get_outputs()[0].name
@@ -110,9 +127,9 @@ def model_paths(d: str, role: str = "leader") -> dict:
     return paths
 
 
-def _load_one(path: str, threads: int) -> OnnxNet:
+def _load_one(path: str, threads: int, compute: str) -> OnnxNet:
     try:
-        return OnnxNet(path, threads)
+        return OnnxNet(path, threads, compute)
     except ImportError:
         raise ModelError("onnxruntime is not installed in this Python") from None
     except Exception:  # noqa: BLE001 - a damaged or foreign file: one line naming it
@@ -125,18 +142,22 @@ _CACHE: dict = {}
 _CACHE_LOCK = threading.Lock()
 
 
-def load_nets(model_dir=None, threads: int = 1, role: str = "leader") -> dict:
+def load_nets(model_dir=None, threads: int = 1, role: str = "leader", compute: str | None = None) -> dict:
     """``{kind: OnnxNet}`` for every kind of :data:`MODEL_FILES` of a models folder (see
     :func:`resolve_model_dir`; ``role``: whose three points the takes hold),
-    loaded once per process, role and thread count (and again when a file
-    changes). :class:`ModelError` when they cannot be loaded."""
+    loaded once per process, role, thread count and ``compute``
+    (:data:`COMPUTE_MODES`; None: :data:`DEFAULT_COMPUTE`), and again when a
+    file changes. :class:`ModelError` when they cannot be loaded."""
     d = resolve_model_dir(model_dir, role)
+    compute = DEFAULT_COMPUTE if compute is None else compute
+    if compute not in COMPUTE_MODES:
+        raise ValueError(f"compute must be one of {COMPUTE_MODES}, not {compute!r}")
     paths = model_paths(d, role)
-    key = (d, max(1, int(threads)), tuple(os.path.getmtime(p) for p in paths.values()))
+    key = (d, role, max(1, int(threads)), compute, tuple(os.path.getmtime(p) for p in paths.values()))
     with _CACHE_LOCK:
         nets = _CACHE.get(key)
         if nets is None:
-            nets = {k: _load_one(p, key[1]) for k, p in paths.items()}
+            nets = {k: _load_one(p, key[2], compute) for k, p in paths.items()}
             while len(_CACHE) >= len(ROLE_DIRS):  # a folder's two roles at a time
                 _CACHE.pop(next(iter(_CACHE)))
             _CACHE[key] = nets

@@ -112,8 +112,11 @@ class DP_SceneSettings(bpy.types.PropertyGroup):
                                  description="Where Render Preview writes its frames or video")
     camera_mode: EnumProperty(
         name="Camera", default='FOLLOW', update=_camera_mode_update,
-        items=(('FOLLOW', "Follow", "The DP Camera follows the couple, keeping both framed"),
-               ('WIDE', "Wide", "The DP Camera stays still, framing the whole take")),
+        items=(('FOLLOW', "Follow", "Render Preview uses the DP Camera, which follows the couple, keeping "
+                                    "both framed and in sight"),
+               ('WIDE', "Wide", "Render Preview uses the DP Camera, still, framing the whole take"),
+               ('SCENE', "Scene Camera", "Render Preview uses the scene's own camera (the DP Camera keeps "
+                                         "following the couple)")),
     )
     burn_in: BoolProperty(name="Burn-in", default=True,
                           description="Render Preview stamps the take's name, the frame and the time")

@@ -5,8 +5,11 @@ scene's render settings are restored afterwards.
 
 The look (studio light, material colours, shadows, cavity, outlines) and the
 burn-in (the take's name, the frame and the time: Blender's render stamp) are
-set for the render only. The DP Camera is put on the scene's camera mode
-(follow / wide) first."""
+set for the render only. It renders through the DP Camera on the scene's
+camera mode (follow / wide), or through the scene's own camera when that is
+chosen (``stage.preview_camera``); the scene's camera is put back afterwards.
+The user's objects marked ``["dp_hide_in_preview"]``
+(``dancing_points.hide_in_previews``) are hidden for the render only."""
 
 import os
 
@@ -169,7 +172,8 @@ class DANCING_POINTS_OT_render_preview(bpy.types.Operator):
 
     def execute(self, context):
         scene = context.scene
-        if scene.camera is None:
+        camera = stage.preview_camera(scene)
+        if camera is None:
             self.report({'ERROR'}, "the scene has no camera (Synthesise adds one)")
             return {'CANCELLED'}
         path = self.filepath or _default_path(context)
@@ -188,6 +192,11 @@ class DANCING_POINTS_OT_render_preview(bpy.types.Operator):
         r = scene.render
         try:
             stage.apply_camera_mode(scene)
+            if scene.camera != camera:
+                saved.set(scene, "camera", camera)
+            for obj in scene.objects:  # the user's objects hidden in previews: for this render only
+                if obj.get(stage.HIDE_PROP) and not obj.hide_render:
+                    saved.set(obj, "hide_render", True)
             saved.set(r, "engine", 'BLENDER_WORKBENCH')
             saved.set(r, "filepath", path)
             saved.set(r, "resolution_percentage", self.resolution_percentage)
@@ -221,7 +230,7 @@ class DANCING_POINTS_OT_render_preview(bpy.types.Operator):
         if problem:
             self.report({'ERROR'}, "render failed: {:s}".format(problem))
             return {'CANCELLED'}
-        self.report({'INFO'}, "Rendered frames {:d}-{:d} to {:s}".format(f0, f1, files[0]))
+        self.report({'INFO'}, "Rendered frames {:d}-{:d} through '{:s}' to {:s}".format(f0, f1, camera.name, files[0]))
         return {'FINISHED'}
 
 

@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """The preview stage: one collection "DP Stage" in the scene with a checker
 floor at the dancers' floor level, the "DP Camera" on its "DP Camera Rig"
-(the rig follows the couple, or holds a fixed wide shot:
+(the rig follows the couple, turning slowly round it so that neither dancer
+hides the other, or holds a fixed wide shot:
 ``Scene.dancing_points.camera_mode``), a sun when the scene
 has no light, and a light world when the scene has none.
 
@@ -29,6 +30,8 @@ STAGE_NAME = "DP Stage"
 # value: "stage", "floor", "camera", "camera_rig", "sun", "world", "material", "action"
 STAGE_PROP = "dp_stage"
 FOLLOW_PROP = "dp_follow_action"
+HIDE_PROP = "dp_hide_in_preview"  # on a user's object: Render Preview hides it (never deletes it)
+OBSTACLES_PROP = "dp_obstacles"  # on the stage: the user's objects standing where the dancers dance
 WIDE_PROP = "dp_wide_matrix"
 ROT_PROP = "dp_follow_rotation"
 FLOOR_MARGIN = 12.0  # m of floor around the couple's path (the horizon stays far)
@@ -90,7 +93,10 @@ def plan(scene, leader_positions, follower_positions, sample_frames, fov):
     at_frames = cp.interpolate_frames(pts, sample_frames, frames)
     view = view_direction(lead)
     aspect = _aspect(scene)
-    path = cp.follow_camera(at_frames, fov, aspect, view, fps=scene_fps(scene))
+    n = lead.shape[1]
+    # the side it looks from turns slowly, so that neither dancer hides the other
+    sides = cp.visible_directions(at_frames[:, :n], at_frames[:, n:], view, fps=scene_fps(scene))
+    path = cp.follow_camera(at_frames, fov, aspect, sides, fps=scene_fps(scene))
     wide_loc, wide_rot = bm.frame_camera(pts[:: max(1, len(pts) // 200)].reshape(-1, 3), view, fov, aspect)
     floor_z = float(np.mean([cp.floor_level(p[:, FOOT_JOINTS, 1]) for p in (lead, foll)]))
     flat = pts.reshape(-1, 3)
@@ -169,8 +175,8 @@ def _camera(stage, created):
 
 
 def _key_follow(cam, frames, path, created):
-    """A new "DP Camera Follow" action on the rig ``cam``: the path's location on
-    every frame (bulk)."""
+    """A new "DP Camera Follow" action on the rig ``cam``: the path's location and
+    rotation (quaternion) on every frame (bulk)."""
     old = bpy.data.actions.get(cam.get(FOLLOW_PROP, "")) if cam.get(FOLLOW_PROP) else None
     action, slot = compat.new_action_for(cam, "DP Camera Follow")
     _new(created, action)
@@ -179,6 +185,10 @@ def _key_follow(cam, frames, path, created):
     for i in range(3):
         compat.write_keys(compat.ensure_fcurves(action, slot, "location", i, "DP Camera"),
                           frames, path.locations[:, i])
+    quats = bm.continuous_quats(bm.matrix_to_quat(path.rotations))
+    for i in range(4):
+        compat.write_keys(compat.ensure_fcurves(action, slot, "rotation_quaternion", i, "DP Camera"),
+                          frames, quats[:, i])
     cam[FOLLOW_PROP] = action.name
     if old is not None and old != action and _role(old) == "action":
         bpy.data.actions.remove(old)
@@ -187,7 +197,8 @@ def _key_follow(cam, frames, path, created):
 
 def apply_camera_mode(scene):
     """Put the DP Camera (its rig) on the scene's ``camera_mode``: the follow
-    action, or the wide shot (fixed). Does nothing when the scene has no stage."""
+    action (also with the scene's own camera chosen), or the wide shot (fixed).
+    Does nothing when the scene has no stage."""
     cam = stage_object(find_stage(scene), "camera_rig")
     if cam is None:
         return None
@@ -195,7 +206,7 @@ def apply_camera_mode(scene):
     mode = settings.camera_mode if settings is not None else 'FOLLOW'
     action = bpy.data.actions.get(cam.get(FOLLOW_PROP, "")) if cam.get(FOLLOW_PROP) else None
     ad = cam.animation_data or cam.animation_data_create()
-    if mode == 'FOLLOW' and action is not None:
+    if mode in ('FOLLOW', 'SCENE') and action is not None:
         rot = cam.get(ROT_PROP)
         if rot is not None:
             cam.rotation_mode = 'QUATERNION'
@@ -228,7 +239,7 @@ def ensure_stage(context, leader_positions, follower_positions, sample_frames, c
     _floor(stage, p["floor"], created)
     rig, cam = _camera(stage, created)
     path = p["path"]
-    rot = Matrix(path.rotation.tolist())
+    rot = Matrix(path.rotations[0].tolist())
     rig.rotation_mode = 'QUATERNION'
     rig.rotation_quaternion = rot.to_quaternion()
     rig[ROT_PROP] = list(rig.rotation_quaternion)
@@ -259,8 +270,76 @@ def ensure_stage(context, leader_positions, follower_positions, sample_frames, c
     scene.frame_end = int(p["frames"][-1])
     stage["dp_camera_max_accel"] = path.max_accel
     stage["dp_camera_max_speed"] = path.max_speed
+    stage["dp_camera_max_turn_rate"] = path.max_turn_rate
     stage["dp_floor_z"] = p["floor_z"]
+    stage[OBSTACLES_PROP] = find_obstacles(scene, leader_positions, follower_positions)
     return stage, p
+
+
+def preview_camera(scene):
+    """The camera Render Preview renders through: the DP Camera (follow or wide)
+    unless the scene's own camera is chosen (``camera_mode`` 'SCENE') or there is
+    no stage; None when there is none."""
+    settings = getattr(scene, "dancing_points", None)
+    mode = settings.camera_mode if settings is not None else 'FOLLOW'
+    cam = stage_object(find_stage(scene), "camera")
+    if mode != 'SCENE' and cam is not None and cam.type == 'CAMERA':
+        return cam
+    return scene.camera
+
+
+def _ours(obj):
+    """Whether an object belongs to the add-on (a take, duet, stage or ghost), not the user."""
+    if _role(obj) is not None or obj.get("dp_role") is not None or obj.get("dp_ghost") is not None:
+        return True
+    from .props import is_duet, is_take
+    return any(_role(c) is not None or is_take(c) or is_duet(c) for c in obj.users_collection)
+
+
+def _character(obj):
+    """A body that dances itself (skinned to an armature, or parented to one): a
+    retargeted character, not something in the dancers' way."""
+    parent = obj.parent
+    while parent is not None:
+        if parent.type == 'ARMATURE':
+            return True
+        parent = parent.parent
+    return any(m.type == 'ARMATURE' for m in getattr(obj, "modifiers", ()))
+
+
+def find_obstacles(scene, leader_positions, follower_positions, margin=0.05):
+    """The user's objects standing where the dancers dance: shown in renders,
+    with a body (a mesh, curve, text...), and whose world bounding box (grown by
+    ``margin`` m sideways) holds some joint of either dancer on some frame, at
+    least ``margin`` below its top (motion-space positions ``(T, 31, 3)``; a floor
+    under their feet is not in the way). Sorted by name."""
+    pts = bm.to_blender(np.concatenate([np.asarray(leader_positions, dtype=np.float64),
+                                        np.asarray(follower_positions, dtype=np.float64)], axis=1))
+    pts = pts[:: max(1, len(pts) // 300)].reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(-1)]
+    found = []
+    for obj in scene.objects:
+        if obj.type not in {'MESH', 'CURVE', 'SURFACE', 'META', 'FONT', 'VOLUME', 'POINTCLOUD', 'CURVES'}:
+            continue
+        if obj.hide_render or _ours(obj) or _character(obj):
+            continue
+        corners = np.array([list(c) + [1.0] for c in obj.bound_box]) @ np.array(obj.matrix_world).T
+        lo, hi = corners[:, :3].min(0), corners[:, :3].max(0)
+        lo[:2] -= margin
+        hi[:2] += margin
+        hi[2] -= margin
+        if len(pts) and bool(np.all((pts >= lo) & (pts <= hi), axis=1).any()):
+            found.append(obj.name)
+    return sorted(found)
+
+
+def obstacles(scene):
+    """The objects of the stage's obstacle list that are still there and not yet
+    hidden in previews."""
+    stage = find_stage(scene)
+    names = list(stage.get(OBSTACLES_PROP, [])) if stage is not None else []
+    objs = [scene.objects.get(n) for n in names]
+    return [o for o in objs if o is not None and not o.get(HIDE_PROP)]
 
 
 def remove_stage(scene):
@@ -342,5 +421,48 @@ class DANCING_POINTS_OT_remove_stage(bpy.types.Operator):
         return {'FINISHED'}
 
 
-classes = (DANCING_POINTS_OT_remove_stage,)
+class DANCING_POINTS_OT_hide_in_previews(bpy.types.Operator):
+    """Hide your objects that stand where the dancers dance in Render Preview (they are not deleted; F12 and the viewport still show them)"""
+
+    bl_idname = "dancing_points.hide_in_previews"
+    bl_label = "Hide in Previews"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    names: bpy.props.StringProperty(
+        name="Objects", options={'SKIP_SAVE'},
+        description="Objects to hide, comma separated (empty: those found standing where the dancers dance)")
+    hide: bpy.props.BoolProperty(name="Hide", default=True, options={'SKIP_SAVE'},
+                                 description="Hide them in previews (off: show them again)")
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene is not None
+
+    def execute(self, context):
+        scene = context.scene
+        if self.names:
+            names = [n.strip() for n in self.names.split(",") if n.strip()]
+            missing = [n for n in names if scene.objects.get(n) is None]
+            if missing:
+                self.report({'ERROR'}, "no object named '{:s}' in the scene".format(missing[0]))
+                return {'CANCELLED'}
+            objs = [scene.objects[n] for n in names]
+        else:
+            stage = find_stage(scene)
+            objs = [scene.objects.get(n) for n in (stage.get(OBSTACLES_PROP, []) if stage is not None else [])]
+            objs = [o for o in objs if o is not None]
+        if not objs:
+            self.report({'ERROR'}, "no object stands where the dancers dance")
+            return {'CANCELLED'}
+        for obj in objs:
+            if self.hide:
+                obj[HIDE_PROP] = True
+            elif HIDE_PROP in obj:
+                del obj[HIDE_PROP]
+        self.report({'INFO'}, "{:s} in Render Preview: {:s}".format(
+            "Hidden" if self.hide else "Shown again", ", ".join(o.name for o in objs)))
+        return {'FINISHED'}
+
+
+classes = (DANCING_POINTS_OT_remove_stage, DANCING_POINTS_OT_hide_in_previews)
 register, unregister = bpy.utils.register_classes_factory(classes)

@@ -116,6 +116,14 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
             s.floor_used, s.floor_source = c.floor_y, c.floor_source
         self.report({'INFO'}, "Baked '{:s}': {:d} frames (synthesis {:.1f} s, bake {:.1f} s); {:s}".format(
             duet_coll.name, duet.n_frames, t_synth, t_bake, c.describe() if c is not None else ""))
+        from .stage import obstacles
+        in_the_way = obstacles(context.scene)
+        if in_the_way:
+            names = ", ".join("'{:s}'".format(o.name) for o in in_the_way)
+            self.report({'WARNING'}, "{:s} {:s} where the dancers dance and will hide them in the preview: "
+                                     "Preview > Hide in Previews hides {:s} there (nothing is deleted)".format(
+                                         names, "stands" if len(in_the_way) == 1 else "stand",
+                                         "it" if len(in_the_way) == 1 else "them"))
         return {'FINISHED'}
 
     # -- from a script -------------------------------------------------------------

@@ -108,8 +108,15 @@ class VIEW3D_PT_dancing_points_preview(SubPanel, bpy.types.Panel):
         layout.prop(settings, "preview_format")
         layout.prop(settings, "camera_mode")
         layout.prop(settings, "burn_in")
+        from ..operators import stage
+        in_the_way = stage.obstacles(context.scene)
+        if in_the_way:
+            box = layout.box()
+            names = ", ".join(o.name for o in in_the_way)
+            box.label(text="{:s} stands where they dance".format(names), icon='INFO')
+            box.operator("dancing_points.hide_in_previews", icon='HIDE_ON')
         row = layout.row()
-        row.enabled = context.scene.camera is not None
+        row.enabled = stage.preview_camera(context.scene) is not None
         op = row.operator("dancing_points.render_preview", text="Render Preview", icon='RENDER_ANIMATION')
         op.filepath = settings.preview_path
         op.file_format = settings.preview_format

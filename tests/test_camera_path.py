@@ -39,7 +39,7 @@ def _view(lead):
 def _check(points, path, fps=30.0):
     """The acceptance constraints on every frame, with the core's projection
     (independent of what follow_camera reports about itself)."""
-    ndc, depth = cp.project(points, path.locations, path.rotation, FOV, ASPECT)
+    ndc, depth = cp.project(points, path.locations, path.rotations, FOV, ASPECT)
     assert (depth > 0.5).all()
     x, y = ndc[..., 0], ndc[..., 1]
     assert np.abs(ndc).max() <= 1.0, "a joint outside the frame"
@@ -64,6 +64,92 @@ def test_follow_camera_on_the_sample_duet(duet):
     R = path.rotation
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
     assert R[2, 2] > 0 and R[2, 2] < 0.3  # camera z (back) points slightly up: it looks slightly down
+
+
+def hidden_share(lead, foll, path):
+    """The share of frames in which less than half of the farther dancer's
+    projected box (the bounding box of his or her bones in the image, through
+    the path's perspective camera) is uncovered by the nearer dancer's box."""
+    boxes, depth = [], []
+    for pts in (lead, foll):
+        ndc, d = cp.project(pts, path.locations, path.rotations, FOV, ASPECT)
+        boxes.append(np.concatenate([ndc.min(1), ndc.max(1)], axis=1))  # x0, y0, x1, y1
+        depth.append(d.mean(1))
+    far_is_f = depth[1] > depth[0]
+    near = np.where(far_is_f[:, None], boxes[0], boxes[1])
+    far = np.where(far_is_f[:, None], boxes[1], boxes[0])
+    ox = np.clip(np.minimum(near[:, 2], far[:, 2]) - np.maximum(near[:, 0], far[:, 0]), 0, None)
+    oy = np.clip(np.minimum(near[:, 3], far[:, 3]) - np.maximum(near[:, 1], far[:, 1]), 0, None)
+    uncovered = 1.0 - ox * oy / ((far[:, 2] - far[:, 0]) * (far[:, 3] - far[:, 1]))
+    return float(np.mean(uncovered < 0.5))
+
+
+def _turn_rate(path, fps=30.0):
+    """The camera's largest angular speed (deg/s), from its rotations (the angle between frames)."""
+    R = path.rotations
+    rel = np.einsum("tji,tjk->tik", R[:-1], R[1:])
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.rad2deg(np.arccos(cos)).max() * fps)
+
+
+@pytest.fixture(scope="module")
+def test_take_duet(salsa_dir, tmp_path_factory):
+    """The duet of salsa take 03's test frames (SPEC §6, as a take)."""
+    from training.evaluate import segment_take, test_segments
+
+    seg = next(test_segments(str(salsa_dir), ("03",)))
+    take = segment_take(seg, str(tmp_path_factory.mktemp("take03")))
+    return Synthesizer(SynthesisOptions(models=MODELS, foot_lock=True)).synthesize(take)
+
+
+@pytest.mark.parametrize("which", ["sample", "take 03"])
+def test_the_camera_turns_so_neither_dancer_hides_the_other(duet, test_take_duet, which):
+    """The view direction turns slowly (at most 60°/s, bounded angular
+    acceleration) so that the farther dancer is mostly in sight: in at most 40 %
+    of the frames is less than half of the farther dancer's box uncovered (a
+    view fixed at the leader's first facing + 60°: 83 % on the sample, 60 % on
+    take 03). The framing holds on every frame as with a fixed view."""
+    d = duet if which == "sample" else test_take_duet
+    lead, foll = bm.to_blender(d.leader_positions), bm.to_blender(d.follower_positions)
+    pts = np.concatenate([lead, foll], axis=1)
+    fixed = cp.follow_camera(pts, FOV, ASPECT, _view(d.leader_positions), 30.0)
+    sides = cp.visible_directions(lead, foll, _view(d.leader_positions), 30.0)
+    path = cp.follow_camera(pts, FOV, ASPECT, sides, 30.0)
+    fill, centre, acc = _check(pts, path)
+    before, after = hidden_share(lead, foll, fixed), hidden_share(lead, foll, path)
+    rate = _turn_rate(path)
+    print(f"\n{which}: the farther dancer mostly hidden in {100 * after:.1f} % of the frames ({100 * before:.1f} % "
+          f"with the fixed view); turns at most {rate:.1f}°/s (reported {path.max_turn_rate:.1f}, angular "
+          f"acceleration {path.max_turn_accel:.1f}°/s²); fill {fill.min():.3f}..{fill.max():.3f}, |centre| <= "
+          f"{np.abs(centre).max():.3f}, max accel {acc:.2f} m/s²")
+    assert after <= 0.40 and after < before - 0.2
+    assert rate <= 60.0 and path.max_turn_rate == pytest.approx(rate, rel=0.02, abs=0.2)
+    assert path.max_turn_accel <= 60.0
+    assert acc < 1.0  # m/s²: the camera still glides
+    R = path.rotations
+    np.testing.assert_allclose(np.einsum("tji,tjk->tik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    assert (R[:, 2, 2] > 0).all() and (R[:, 2, 2] < 0.3).all()  # always looking slightly down, never rolled
+    np.testing.assert_allclose(R[:, 2, 0], 0.0, atol=1e-12)  # the image's x axis stays horizontal
+
+
+def test_visible_directions_keep_the_view_when_nothing_hides():
+    """Two dancers far apart side by side (never in each other's way): the
+    camera keeps the view it was given and does not turn."""
+    T = 90
+    lead = np.zeros((T, 4, 3))  # a box 0.5 m wide (x and y), 1.7 m tall
+    lead[:, :, :2] = [[-0.25, -0.25], [0.25, 0.25], [-0.25, 0.25], [0.25, -0.25]]
+    lead[:, 1::2, 2] = 1.7
+    foll = lead.copy()
+    foll[:, :, 0] += 2.0
+    sides = cp.visible_directions(lead, foll, (0.0, -1.0, 0.0), 30.0)
+    np.testing.assert_allclose(sides, np.broadcast_to([0.0, -1.0, 0.0], sides.shape), atol=1e-9)
+    # given a view along their line (one behind the other), it takes the nearest side from
+    # which the farther one is in sight (60 % of the box uncovered), and stays there
+    sides = cp.visible_directions(lead, foll, (1.0, 0.0, 0.0), 30.0)
+    h = np.arctan2(sides[:, 1], sides[:, 0])
+    assert 5.0 < np.rad2deg(abs(h[0])) < 30.0 and np.ptp(h) < 1e-9
+    assert (cp.uncovered_shares(lead, foll, h[:1]) >= 0.6 - 1e-9).all()
+    assert (cp.uncovered_shares(lead, foll, [0.0]) < 0.01).all()  # straight along the line: hidden
 
 
 def test_follow_camera_corrects_hard_frames(duet):

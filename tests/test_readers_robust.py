@@ -79,8 +79,10 @@ def test_epoch_times_synthesize_core_and_cli(sample, sample_duet, tmp_path):
     assert res.returncode == 0, res.stderr
     z = np.load(out)
     assert z["time"].shape == (343,) and abs(z["time"][0] - EPOCH) < 1e-6
+    # (the take written and read back: its quaternions differ by 5e-11, which the networks,
+    # multiplied in float32, carry on to about 0.01 mm of her)
     for k in ("leader_positions", "follower_positions"):
-        assert np.abs(z[k] - getattr(sample_duet, k)).max() < 1e-6, k
+        assert np.abs(z[k] - getattr(sample_duet, k)).max() < 1e-4, k
 
 
 def test_times_round_trip_exactly(tmp_path):

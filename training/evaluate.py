@@ -455,6 +455,8 @@ def main(argv=None):
                     help="follower: SPEC §6 'reversed', the follower's frames as a role=follower take; the figures "
                          "named leader_* are then the tracked dancer's (hers), follower_* the partner's (his)")
     ap.add_argument("--no-device-follow", action="store_true", help="his head and hands not turned as the devices")
+    ap.add_argument("--compute", choices=("float", "int8"), default=None,
+                    help="how the int8 networks multiply (default: the runtime's, float; see nets.COMPUTE_MODES)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--markdown", default=None)
     args = ap.parse_args(argv)
@@ -462,7 +464,7 @@ def main(argv=None):
     takes = tuple(args.takes.split(",")) if args.takes else SALSA_TAKES
     tracked = "follower" if args.role == "follower" else args.tracked
     segments = list(test_segments(args.data, takes, args.split, tracked))
-    nets = load_nets(args.models, role=args.role)
+    nets = load_nets(args.models, role=args.role, compute=args.compute)
     error = None
     if args.offset_error:
         axis, metres = args.offset_error.split(":")
@@ -480,7 +482,8 @@ def main(argv=None):
             paths = {r: os.path.join(args.ablations, f"{tag}_{r}.onnx") for r in ("leader", "follower")}
             paths = {r: p for r, p in paths.items() if os.path.exists(p)}
             if paths:  # an ablation trained for one dancer only keeps the full model's other tracker
-                abl = dict(nets, **{r: OnnxNet(p) for r, p in paths.items()})
+                abl = dict(nets, **{r: OnnxNet(p, compute=next(iter(nets.values())).compute)
+                                    for r, p in paths.items()})
                 partial[tag] = sorted(set(("leader", "follower")) - set(paths))
                 cls = PastInputSynth if tag == "pastinput" else Synthesizer
                 if tag == "pastinput" and "follower" in partial[tag]:

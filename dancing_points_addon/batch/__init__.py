@@ -4,8 +4,10 @@
 and, inside Blender, ``blender --background --command dancing_points convert ...``
 (``operators/batch_cli.py``) both take :func:`add_arguments` and run :func:`run`:
 
-* :mod:`.plan`: the input files, one output per take named after it (never
-  one of the inputs), the temporary names the workers write;
+* :mod:`.plan`: the input files (``.csv``, ``.bvh``, ``.amc``, ``.fbx``; an FBX
+  take goes to a worker with Blender's ``bpy``, which reads it with Blender's
+  importer), one output per take named after it (never one of the inputs), the
+  temporary names the workers write;
 * :mod:`.lock`: one batch at a time per output folder (a second one is refused);
 * :mod:`.scheduler`: the parent, running ``--jobs`` worker processes
   (:mod:`.worker`, talking :mod:`.messages`), committing finished outputs,
@@ -36,8 +38,8 @@ from ..argtypes import (EXIT_BAD_INPUT, EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK,
                         add_calibration_arguments, height_metres, positive_float, positive_int, printable,
                         thread_count)
 from ..errors import InputError, one_line
-from .options import (BPY_FORMATS, BPY_INPUTS, CORE_INPUTS, FORMATS, check_rigs, default_jobs, job_options,
-                      resolve_model_dir)
+from .options import (BPY_FORMATS, BPY_INPUTS, CORE_INPUTS, FORMATS, check_rigs, default_jobs, input_needs_bpy,
+                      job_options, resolve_model_dir)
 from .lock import LOCK_NAME
 from .lock import acquire as acquire_lock
 from .plan import (PART, check_not_inputs, discover, make_output_dirs, output_bases, output_kinds, output_paths, plan,
@@ -129,16 +131,21 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
         raise InputError(args.output_dir, "output path exists and is not a folder")
     needs_bpy = fmt in BPY_FORMATS or args.render
     cluster_addr = getattr(args, "cluster", None)
+    entries = discover(args.inputs, BPY_INPUTS, exclude=[out_dir])
+    if not entries:
+        raise InputError(" ".join(map(str, args.inputs)), f"no input files found (looked for {', '.join(BPY_INPUTS)})")
+    fbx = next((p for p, _ in entries if input_needs_bpy(p)), None)
     if needs_bpy and not in_blender and not cluster_addr:  # (on a cluster: the workers need bpy, checked there)
         import importlib.util
         if importlib.util.find_spec("bpy") is None:  # (only looks: the parent never imports it)
             raise InputError(None, f"--format {fmt}{' --render' if args.render else ''} needs Blender: "
                                    f"install the bpy module or run blender --background --command "
                                    f"dancing_points convert ...")
-    entries = discover(args.inputs, BPY_INPUTS if needs_bpy else CORE_INPUTS, exclude=[out_dir])
-    if not entries:
-        exts = ", ".join(BPY_INPUTS if needs_bpy else CORE_INPUTS)
-        raise InputError(" ".join(map(str, args.inputs)), f"no input files found (looked for {exts})")
+    if fbx is not None and not needs_bpy and not in_blender and not cluster_addr:
+        import importlib.util
+        if importlib.util.find_spec("bpy") is None:
+            raise InputError(fbx, "FBX takes are read by Blender's importer: install the bpy module, or run "
+                                  "blender --background --command dancing_points convert ...")
     model_dir = resolve_model_dir(args.models)
     if args.asf and not os.path.isfile(args.asf):
         raise InputError(args.asf, "no such ASF file")
@@ -159,7 +166,7 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
     if cluster_addr:  # before any work: a cluster that cannot run this batch is one line, exit 2
         from .cluster import connect
 
-        cluster = connect(cluster_addr, model_dir, needs_bpy, err=err)
+        cluster = connect(cluster_addr, model_dir, needs_bpy or fbx is not None, err=err)
     try:
         batch, outcome, report, report_path, seconds = _run_planned(
             args, entries, out_dir, fmt, jobs, model_dir, report_path, worker_cmd, cluster, out, err, t_start,

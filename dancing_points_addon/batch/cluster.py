@@ -53,7 +53,7 @@ import time
 import uuid
 
 from ..errors import InputError, UserError, error_message, one_line
-from .options import BPY_FORMATS
+from .options import BPY_FORMATS, task_needs_bpy
 from .plan import remove_temps, settle_unfinished
 from .progress import result_line
 from .worker import ROOT
@@ -628,7 +628,7 @@ class ClusterBatch:
 
     # -- the tasks ----------------------------------------------------------------------
     def _needs_bpy(self, task):
-        return self.fmt in BPY_FORMATS or "mp4" in task.kinds
+        return task_needs_bpy(self.fmt, task)
 
     def _files(self):
         """The option files every task carries: ``{option: (name, bytes)}``."""

@@ -15,7 +15,18 @@ from ..errors import InputError
 FORMATS = ("npz", "bvh", "blend", "fbx")
 BPY_FORMATS = ("blend", "fbx")  # (and --render) need Blender's bpy in the workers
 CORE_INPUTS = (".csv", ".bvh", ".amc")
-BPY_INPUTS = CORE_INPUTS + (".fbx",)
+BPY_INPUTS = CORE_INPUTS + (".fbx",)  # every input type: an .fbx take is read by Blender in a bpy worker
+
+
+def input_needs_bpy(path) -> bool:
+    """Whether a take file is read through Blender (an FBX: its importer)."""
+    return os.path.splitext(os.fspath(path))[1].lower() == ".fbx"
+
+
+def task_needs_bpy(fmt, task) -> bool:
+    """Whether a task runs in a worker with Blender's ``bpy``: a blend/fbx output,
+    the preview video, or an FBX input (whatever the output format)."""
+    return fmt in BPY_FORMATS or "mp4" in task.kinds or input_needs_bpy(task.input)
 RIG_TYPES = (".blend", ".glb", ".gltf", ".fbx")
 
 

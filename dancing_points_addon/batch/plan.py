@@ -1,8 +1,9 @@
 """Planning a batch: which files, which outputs, which temporary names.
 
 * Inputs: files, or folders searched recursively by extension (``.csv``, ``.bvh``,
-  ``.amc``; also ``.fbx`` when Blender does the conversion). Hidden files and
-  folders and the output folder are not searched.
+  ``.amc``, ``.fbx``: an FBX take is read by Blender's importer in a worker with
+  ``bpy``, whatever the output format). Hidden files and folders and the output
+  folder are not searched.
 * Outputs: one per take, named after it (``take.npz``, ``take.blend``,
   ``take.fbx``; ``take_leader.bvh`` + ``take_follower.bvh``; ``--render`` adds
   ``take.mp4``), in the output folder, under the input's sub-folder when it was

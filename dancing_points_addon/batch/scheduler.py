@@ -28,7 +28,7 @@ import time
 
 from ..errors import InputError, one_line
 from . import messages
-from .options import BPY_FORMATS
+from .options import BPY_FORMATS, task_needs_bpy
 from .plan import remove_temps, settle_unfinished
 from .progress import result_line
 from ..argtypes import SINGLE_THREAD_ENV
@@ -172,7 +172,7 @@ class Batch:
         return w
 
     def _needs_bpy(self, task):
-        return self.fmt in BPY_FORMATS or "mp4" in task.kinds
+        return task_needs_bpy(self.fmt, task)
 
     def _job(self, task):
         return messages.job(task.index, task.input, dict(zip(task.kinds, task.temps)), self._needs_bpy(task),

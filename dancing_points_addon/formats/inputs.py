@@ -1,4 +1,4 @@
-"""Any input as a take: the SPEC §3 take file, a CMU AMC or a BVH motion
+"""Any input as a take: the SPEC §3 take file, a CMU AMC, a BVH or an FBX motion
 (:func:`load_input`), and the one set of rules every take must meet before it
 is synthesised (:func:`check_take`), wherever it came from: the command line,
 the batch and the Blender import all apply them."""
@@ -73,7 +73,7 @@ def check_take(take: Take, path=None) -> Take:
     return take
 
 
-INPUT_TYPES = (".csv", ".amc", ".bvh")
+INPUT_TYPES = (".csv", ".amc", ".bvh", ".fbx")
 
 
 def load_input(path, asf=None, input_fps=None, height=None) -> Take:
@@ -106,6 +106,9 @@ def _load(path, asf=None, input_fps=None, height=None, want_hands=False):
     * ``.amc`` CMU motion (ASF beside it or ``asf``); ``input_fps`` overrides
       the default rate (60 Hz for subjects 60/61, else 120 Hz).
     * ``.bvh`` motion; ``input_fps`` overrides its Frame Time.
+    * ``.fbx`` motion, read by Blender's FBX importer in a ``bpy`` process
+      (:func:`.fbx.load_fbx`; without the ``bpy`` module, an :class:`InputError`
+      saying how); ``input_fps`` overrides the file's frame rate.
 
     ``height`` (metres, within :data:`HEIGHT_RANGE_M`) is stored as
     ``meta['height_m']``; ``input_fps`` must be within :data:`INPUT_FPS_RANGE`.
@@ -133,6 +136,9 @@ def _load(path, asf=None, input_fps=None, height=None, want_hands=False):
                     check_duration(path, (take.n_frames - 1) / input_fps,
                                    what=f"the take ({take.n_frames} rows at {input_fps:g} Hz)")
                     take.time = take.time[0] + np.arange(take.n_frames) / input_fps
+            elif ext == ".fbx":
+                from .fbx import load_fbx
+                take = _checked_motion_take(path, load_fbx(path, input_fps))
             elif ext == ".amc":
                 if asf is not None:
                     regular_file(os.fspath(asf), "an ASF file", missing="no such ASF file")

@@ -78,7 +78,14 @@ class Retargeter:
 
     def __init__(self, bone_vectors, target: TargetRig, mapping: dict, foot_lock: bool = True,
                  blend_frames: int = 6, match_hands: bool = True, match_head: bool = True,
-                 match_feet: bool = True, max_drift: float = 0.30, max_step_deg: float = 60.0, max_drop: float = 0.06):
+                 match_feet: bool = True, max_drift: float = 0.30, max_step_deg: float = 60.0, max_drop: float = 0.06,
+                 rigid=()):
+        """``rigid``: groups of target bone names (consecutive segments of one
+        chain) that move as one bone: the segments of a limb that a rig bends only
+        as a whole (a generated Rigify rig's ``DEF-forearm.L`` and
+        ``DEF-forearm.L.001``, driven by one ``forearm_fk.L``), which would
+        otherwise each follow their own part of the source's chain and bend
+        where the rig's controls cannot."""
         self.target = target
         self.max_drift = float(max_drift)
         self.max_drop = float(max_drop)
@@ -143,6 +150,23 @@ class Retargeter:
                     A = _frame(ds, UP if use_up else SRC_FWD) @ _frame(dt, UP if use_up else self.tgt_body[:, 2]).T
                 self.seg[b] = dict(chain=pts_idx, s=s_cum, f0=f0, f1=f1, twist=src[k], A=A,
                                    d_rest=_unit(d_src))
+            for group in rigid:  # segments moving as one: the span of the whole group, one twist
+                members = [tgt.index[n] for n in group if n in tgt.index and tgt.index[n] in bones]
+                if len(members) < 2:
+                    continue
+                f0, f1 = min(self.seg[b]["f0"] for b in members), max(self.seg[b]["f1"] for b in members)
+                k = int(np.clip(np.searchsorted(s_cum, 0.5 * (f0 + f1), side="right") - 1, 0, len(src) - 1))
+                d_src = interp_poly(poly[None], s_cum, f1)[0] - interp_poly(poly[None], s_cum, f0)[0]
+                for b in members:
+                    d_tgt = ends[bones.index(b)] - heads[b]
+                    sg = self.seg[b]
+                    if np.linalg.norm(d_src) > 1e-9 and np.linalg.norm(d_tgt) > 1e-9:
+                        ds, dt = _unit(d_src), _unit(d_tgt)
+                        use_up = abs(np.dot(ds, SRC_FWD)) > 0.7 or abs(np.dot(dt, self.tgt_body[:, 2])) > 0.7
+                        sg["A"] = _frame(ds, UP if use_up else SRC_FWD) @ _frame(dt, UP if use_up else
+                                                                                 self.tgt_body[:, 2]).T
+                        sg["d_rest"] = ds
+                    sg.update(f0=f0, f1=f1, twist=src[k])
         # Proportions: leg lengths (thigh + shin), ankle heights.
         lt = [self._leg_length_target(heads, s) for s in SIDES]
         ls = [self._src_leg(s) for s in SIDES]

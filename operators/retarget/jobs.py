@@ -9,6 +9,7 @@ import numpy as np
 
 from ...dancing_points_addon import retarget as rt
 from ...dancing_points_addon.retarget import RetargetError
+from ...dancing_points_addon.retarget import rigify as rgf
 from ...dancing_points_addon.errors import UserError, error_message
 from .. import bake
 from ..props import ROLE_PROP, ROLES, is_duet
@@ -35,8 +36,9 @@ class _Job:
         self.notes = []
         try:
             mapping = mapping_for(target, preset, self.notes)
-            self.ret = rt.Retargeter(bv, target_rig(target, deform_parents=apply.uses_controls(target, mapping)),
-                                     mapping, foot_lock=foot_lock)
+            controls = apply.uses_controls(target, mapping)
+            self.ret = rt.Retargeter(bv, target_rig(target, deform_parents=controls), mapping, foot_lock=foot_lock,
+                                     rigid=rgf.rigid_segments(mapping) if controls else ())
         except RetargetError as exc:
             raise RetargetError("{:s}: {:s}".format(target.name, error_message(exc))) from None
         if origin is None:
@@ -138,8 +140,10 @@ def retarget_one(context, source, target, preset="", foot_lock=True, close_hands
             pframes, ppos, prot, pbv, pmat = source_motion(partner)
             if len(pframes) == len(job.frames) and np.allclose(pframes, job.frames):
                 pmap = stored_mapping(prig)
-                prest = target_rig(prig, store=False, deform_parents=apply.uses_controls(prig, pmap))
-                pret = rt.Retargeter(pbv, prest, pmap, foot_lock=False)
+                pctl = apply.uses_controls(prig, pmap)
+                prest = target_rig(prig, store=False, deform_parents=pctl)
+                pret = rt.Retargeter(pbv, prest, pmap, foot_lock=False,
+                                     rigid=rgf.rigid_segments(pmap) if pctl else ())
                 if apply.uses_controls(prig, pret.mapping):  # keyed on controls: Blender's evaluation
                     pw = pret.wrists(apply.evaluated_world(prig, job.frames))
                 else:
