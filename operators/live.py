@@ -1,13 +1,17 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """Dance live in Blender: ``bpy.ops.dancing_points.live_start`` / ``live_stop``.
 
-The work is the core's (``dancing_points_addon.live``): a receiver thread and
-the live loop's thread for a network stream (VMC, OSC), or, for Blender's own
-VR session, the loop run on each tick from the poses the session reports. A
-timer on the main thread (:func:`tick`) poses the two live armatures ("DP Live
-Leader", "DP Live Follower", in the collection "DP Live") from the latest duet
-frame: pose bones set directly, no keyframes. Timers do not run in background
-mode; :func:`tick` is the function to call there.
+The work is the core's (``dancing_points_addon.live``). A network stream (VMC,
+OSC) is received by a thread (it stamps each packet's arrival); Blender's own
+VR session is read on each tick. A timer on the main thread (:func:`tick`)
+runs the live loop on what came (``LiveSession.pump``: at most
+:data:`PUMP_BUDGET_S` of synthesis a tick, so the first second's catch-up never
+blocks the UI) and poses the two live armatures ("DP Live Leader", "DP Live
+Follower", in the collection "DP Live") from the latest duet frame: pose bones
+set directly, no keyframes. The loop runs on the main thread rather than in a
+second thread of its own: a thread would contend with the UI for Python's
+lock, which measured three times the latency. Timers do not run in
+background mode; :func:`tick` is the function to call there.
 
 **Stop keeps the take**: the rows the loop used are written as a take file
 (SPEC §3, with ``devices``, ``role``, ``height_m``, ``floor_y``) beside the
@@ -34,6 +38,7 @@ from . import bake
 from .props import ROLE_PROP
 
 TICK_S = 1.0 / 120.0  # the timer's interval: poses at most this late after their frame
+PUMP_BUDGET_S = 0.010  # synthesis a tick at most (frames left over are made on the next ticks)
 STATUS_S = 0.25  # the sidebar's status is redrawn this often
 XR_REPEAT_S = 0.05  # a VR pose polled again unchanged within this is not a new sample
 LIVE_COLLECTION = "DP Live"
@@ -91,7 +96,7 @@ class LiveRun:
         self.rigs = {}  # role -> (object name, rest rotations, rest heads)
         self.scale = None  # the armatures' object scale (the dancer's height / the networks')
         self.last_k = -1
-        self.posed = None  # the duet frame last posed: (k, leader DuetFrame, follower DuetFrame)
+        self.posed = None  # the frame last posed: (k, leader, follower DuetFrame, its packet's arrival)
         self.tick_s = []  # seconds per tick that posed a frame
         self.latency_s = []  # seconds from a frame's packet arrival to its posed bones
         self.last_xr = None  # (time, poses) of the last VR poll fed
@@ -174,7 +179,6 @@ def start(context, settings):
     sink.append(session)
     if receiver is not None:
         receiver.start()
-        session.start()
     _RUN = run
     return run
 
@@ -203,10 +207,10 @@ def tick(context=None, now=None):
     context = context or bpy.context
     t0 = time.perf_counter()
     s = run.session
+    now = s.clock() if now is None else now
     if run.source == 'XR':
         from ..dancing_points_addon.live.receiver import Sample
 
-        now = s.clock() if now is None else now
         got = read_xr_state(xr_session_state(context), context)
         if got is not None:
             pos, quats = xr_to_motion(*got)
@@ -214,12 +218,10 @@ def tick(context=None, now=None):
             last = run.last_xr
             if last is None or now - last[0] > XR_REPEAT_S or not _same(last[1], poses):
                 run.last_xr = (now, poses)
-                s.feed(Sample(now, poses))
-        s.tick(now)
-    else:
-        for failed in (run.receiver, s):
-            if failed.error is not None and run.error is None:
-                run.error = failed.error
+                s.put(Sample(now, poses))
+    elif run.receiver.error is not None and run.error is None:
+        run.error = run.receiver.error
+    s.pump(now, PUMP_BUDGET_S)
     latest = s.latest
     if latest is not None and latest[0] != run.last_k:
         if run.scale is None:
@@ -233,7 +235,7 @@ def tick(context=None, now=None):
                         child.hide_viewport = False
         _pose(run, latest[1:3])
         run.last_k = latest[0]
-        run.posed = latest[:3]
+        run.posed = latest
         done = time.perf_counter()
         run.tick_s.append(done - t0)
         run.latency_s.append(done - latest[3])

@@ -169,8 +169,10 @@ def cmd_live(args) -> int:
     print(printable(f"received {c['datagrams']} packets: used {c['used']}, late {c['late']}, malformed "
                     f"{c['malformed']}, ignored {c['ignored']}; lost on the way {c['lost']} samples"))
     med, p99 = result.latency_ms
+    smed, sp99 = result.steady_ms
     print(printable(f"latency from a packet's arrival to its duet frame: median {med:.2f} ms, "
-                    f"99th percentile {p99:.2f} ms"))
+                    f"99th percentile {p99:.2f} ms; after the calibration's catch-up: median {smed:.2f} ms, "
+                    f"99th percentile {sp99:.2f} ms"))
     print(printable(f"{result.duet.calibration.describe()}"))
     print(printable(f"wrote {csv} ({take.n_frames} rows, {float(take.time[-1]):.2f} s) and {out} "
                     f"({result.duet.n_frames} frames at 30 Hz)"))

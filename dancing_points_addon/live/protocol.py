@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
+import struct
 
 import numpy as np
 
@@ -66,28 +66,44 @@ class BadMessage(ValueError):
 class _QuietPythonOsc(logging.Filter):
     """``python-osc`` logs a warning (on the root logger) for each bundle
     element or argument type it skips; a stream of bad packets would flood the
-    log. While a receiver runs, those records are dropped here (the receiver
-    counts the packets instead)."""
+    log. Those records are dropped (the receiver counts the packets instead);
+    nothing else is."""
 
     def filter(self, record):
         return not (record.name == "root" and record.module in ("osc_bundle", "osc_message"))
 
 
 _QUIET = _QuietPythonOsc()
-_quiet_users = [0]
-_quiet_lock = threading.Lock()
 
 
-def quiet_osc_logging(on: bool) -> None:
-    """Counted: drop ``python-osc``'s per-packet warnings while at least one receiver runs."""
-    with _quiet_lock:
-        _quiet_users[0] += 1 if on else -1
-        root = logging.getLogger()
-        if on and _quiet_users[0] == 1:
-            root.addFilter(_QUIET)
-        elif not on and _quiet_users[0] <= 0:
-            _quiet_users[0] = 0
-            root.removeFilter(_QUIET)
+def _quiet_osc_logging() -> None:
+    root = logging.getLogger()
+    if _QUIET not in root.filters:
+        root.addFilter(_QUIET)
+
+
+MAX_BUNDLE_DEPTH = 16
+
+
+def bundle_framing_ok(dgram: bytes, depth: int = 0) -> bool:
+    """Whether each element size of a bundle (and of the bundles nested in it)
+    lies within the datagram. ``python-osc`` 1.10.2 loops for ever on a
+    negative size; this is checked before a bundle is handed to it (only the
+    sizes: the elements themselves are ``python-osc``'s to read)."""
+    if depth > MAX_BUNDLE_DEPTH or len(dgram) < 16:
+        return False
+    i, n = 16, len(dgram)  # "#bundle\0" and the 8-byte time tag
+    while i < n:
+        if i + 4 > n:
+            return False
+        size = struct.unpack_from(">i", dgram, i)[0]
+        i += 4
+        if size < 0 or i + size > n:
+            return False
+        if dgram.startswith(b"#bundle\x00", i) and not bundle_framing_ok(dgram[i:i + size], depth + 1):
+            return False
+        i += size
+    return True
 
 
 def osc_messages(dgram: bytes) -> list:
@@ -97,9 +113,12 @@ def osc_messages(dgram: bytes) -> list:
     from pythonosc.osc_bundle import OscBundle
     from pythonosc.osc_message import OscMessage
 
+    _quiet_osc_logging()
     out = []
     try:
         if OscBundle.dgram_is_bundle(dgram):
+            if not bundle_framing_ok(dgram):
+                raise MalformedPacket("a bundle element's size runs outside the packet")
             stack = [iter(OscBundle(dgram))]
             while stack:
                 item = next(stack[-1], None)
@@ -244,7 +263,8 @@ class VmcDecoder:
                     pk.known += 1
                     if len(args) < 8 or not isinstance(args[0], str):
                         raise BadMessage(f"{address} needs a serial and 7 numbers")
-                    up, uq = unity_to_motion(args[1:4], args[4:8])
+                    nums = [_number(v) for v in args[1:8]]
+                    up, uq = unity_to_motion(nums[:3], nums[3:])
                     p, q = check_pose(up, uq)
                     serial = args[0]
                     if address == VMC_HMD:

@@ -22,7 +22,7 @@ import threading
 import time
 
 from ..errors import UserError
-from .protocol import MalformedPacket, osc_messages, quiet_osc_logging
+from .protocol import osc_messages
 
 GROUP_WINDOW_S = 0.002
 MAX_DATAGRAM = 65536
@@ -95,10 +95,10 @@ class SampleAssembler:
         c.add(datagrams=1)
         try:
             msgs = osc_messages(data)
-        except MalformedPacket:
+            pk = self.decoder.decode(msgs)
+        except Exception:  # noqa: BLE001 - MalformedPacket, or a packet the decoder did not foresee: never fatal
             c.add(malformed=1)
             return
-        pk = self.decoder.decode(msgs)
         if pk.bad:
             c.add(bad_messages=pk.bad)
         if not pk.known:
@@ -195,7 +195,6 @@ class UdpReceiver:
             pass
         self.port = sock.getsockname()[1]  # the port actually bound (port 0: any free one)
         self.sock = sock
-        quiet_osc_logging(True)
 
     def start(self) -> None:
         """Bind (unless :meth:`open` did) and start the thread."""
@@ -235,5 +234,4 @@ class UdpReceiver:
         if self.sock is not None:
             self.sock.close()
             self.sock = None
-            quiet_osc_logging(False)
         self.thread = None

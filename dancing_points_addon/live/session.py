@@ -216,6 +216,7 @@ class LiveResult:
     duet: object
     counters: dict
     latency_ms: tuple  # (median, 99th percentile) of the frames made live, or (nan, nan)
+    steady_ms: tuple = (math.nan, math.nan)  # the same from a second after the calibration (caught up)
 
 
 def _offset_text(v) -> str:
@@ -250,10 +251,12 @@ class LiveSession:
         self.resampler = CausalResampler()
         self._last_dev = [None, None, None]  # per device: (clock time, (position, quat)) last heard
         self._done = 0  # rows read into frames
+        self._catchup = 0  # rows read when the calibration came (not live: no latency counted)
         self._silent = False  # the last row was made of silence
         self._frames = {k: [] for k in ("lp", "lr", "lc", "fp", "fr", "fc", "pred", "planted")}
         self.latest = None  # (k, leader DuetFrame, follower DuetFrame, arrival of the row that made it)
-        self.latency = []  # seconds from a row's arrival to its frame, frames made live (not catching up)
+        self.latency = []  # (frame, seconds from a row's arrival to the frame), frames made live (not catching up)
+        self.compute_s = []  # seconds of synthesis per frame
         self._recent = deque(maxlen=64)  # (clock time, latency) of the last frames
         self._arrivals = deque(maxlen=256)  # clock times of the last samples (the input rate)
         self._queue = queue.SimpleQueue()
@@ -308,41 +311,64 @@ class LiveSession:
 
     # -- the loop (one caller at a time) ------------------------------------------------
     def feed(self, s: Sample) -> None:
-        """One sample (see the module docstring)."""
+        """One sample (see the module docstring), and the frames it makes."""
         with self._lock:
-            self._arrivals.append(s.time)
-            if s.meta:
-                self.stream_meta.update(s.meta)
-            if not s.poses:
-                return
-            pos = np.full((3, 3), np.nan)
-            quat = np.full((3, 4), np.nan)
-            for d in range(3):
-                if d in s.poses:
-                    v = s.poses[d]
-                    self._last_dev[d] = None if v is None else (s.time, v)
-                else:
-                    last = self._last_dev[d]
-                    v = last[1] if last is not None and s.time - last[0] <= self.options.gap_s else None
-                if v is not None:
-                    pos[d], quat[d] = v
-            self._row(s.time, pos, quat, s.datagrams)
+            self._ingest(s)
+            self._work(None)
 
     def tick(self, now: float) -> None:
         """Nothing has come: after ``gap_s`` (then every frame) a row of lost devices."""
         with self._lock:
-            if self.t_first is None:
-                return
-            due = self._last_abs + (1.0 / NET_FPS if self._silent else self.options.gap_s)
-            if now < due:
-                return
-            pos = np.full((3, 3), np.nan)
-            quat = np.full((3, 4), np.nan)
-            for d in range(3):
+            self._silence(now)
+            self._work(None)
+
+    def pump(self, now: float, budget_s: float | None = None) -> int:
+        """For a caller that runs the loop itself (Blender's main thread, no
+        loop thread): the samples put so far, silence up to ``now``, then
+        their frames; the first second's catch-up for at most ``budget_s``
+        seconds a call (the rest on the next calls: it never blocks long).
+        Returns the rows still to read into frames."""
+        with self._lock:
+            while True:
+                try:
+                    self._ingest(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            self._silence(now)
+            return self._work(budget_s)
+
+    def _ingest(self, s: Sample) -> None:
+        self._arrivals.append(s.time)
+        if s.meta:
+            self.stream_meta.update(s.meta)
+        if not s.poses:
+            return
+        pos = np.full((3, 3), np.nan)
+        quat = np.full((3, 4), np.nan)
+        for d in range(3):
+            if d in s.poses:
+                v = s.poses[d]
+                self._last_dev[d] = None if v is None else (s.time, v)
+            else:
                 last = self._last_dev[d]
-                if last is not None and now - last[0] <= self.options.gap_s:
-                    pos[d], quat[d] = last[1]
-            self._row(now, pos, quat, 0, silent=True)
+                v = last[1] if last is not None and s.time - last[0] <= self.options.gap_s else None
+            if v is not None:
+                pos[d], quat[d] = v
+        self._row(s.time, pos, quat, s.datagrams)
+
+    def _silence(self, now: float) -> None:
+        if self.t_first is None:
+            return
+        due = self._last_abs + (1.0 / NET_FPS if self._silent else self.options.gap_s)
+        if now < due:
+            return
+        pos = np.full((3, 3), np.nan)
+        quat = np.full((3, 4), np.nan)
+        for d in range(3):
+            last = self._last_dev[d]
+            if last is not None and now - last[0] <= self.options.gap_s:
+                pos[d], quat[d] = last[1]
+        self._row(now, pos, quat, 0, silent=True)
 
     def _row(self, t_abs, pos, quat, datagrams, silent=False):
         valid = np.isfinite(pos).all(-1) & np.isfinite(quat).all(-1)
@@ -362,11 +388,8 @@ class LiveSession:
         self._silent = silent and not valid.any()
         if datagrams or not silent:
             self.counters.add(samples=1)
-        if self.calibration is None:
-            if self._can_calibrate(t):
-                self._calibrate(rows.n)
-        else:
-            self._frames_from(rows.n, live=True)
+        if self.calibration is None and self._can_calibrate(t):
+            self._calibrate(rows.n)
 
     def _known(self, key, option):
         if option is not None:
@@ -408,24 +431,34 @@ class LiveSession:
         self.calibration = Calibration(c.devices, float(meta["height_m"]), c.height_source, float(meta["floor_y"]),
                                        c.floor_source, c.offsets)
         self.synth.set_calibration(self.calibration)
-        self._frames_from(n, live=False)
+        self._catchup = n  # the rows before: read into frames at once, not live
 
-    def _frames_from(self, n, live) -> None:
-        """Read rows ``[done, n)`` into frames."""
+    def _work(self, budget_s) -> int:
+        """Read the rows not yet read into frames (the catch-up's for at most
+        ``budget_s`` seconds; None: all); returns how many are left."""
         c = self.calibration
         rows = self.rows
-        for i in range(self._done, n):
+        if c is None:
+            return 0
+        t0 = self.clock() if budget_s is not None else 0.0
+        while self._done < rows.n:
+            i = self._done
             one = Take(rows.time[i:i + 1], rows.pos[i:i + 1], as_read(rows.quat[i:i + 1]), {})
             with np.errstate(invalid="ignore", divide="ignore"):  # lost devices: NaN in, NaN out
                 read = apply_calibration(one, c, fill_start=False)
             p, q = read.positions[0], read.quats[0]
             valid = np.isfinite(p).all(-1) & np.isfinite(q).all(-1)
             for k, pk, qk, ok in self.resampler.add(rows.time[i], p, q, valid):
-                self._step(k, pk, qk, ok, rows.arrival[i] if live else None)
-        self._done = n
+                self._step(k, pk, qk, ok, rows.arrival[i] if i >= self._catchup else None)
+            self._done = i + 1
+            if budget_s is not None and self._done < self._catchup and self.clock() - t0 >= budget_s:
+                break
+        return rows.n - self._done
 
     def _step(self, k, pos, quat, ok, arrival) -> None:
+        t0 = self.clock()
         a, b = self.synth.step_points(pos, quat, ok)
+        self.compute_s.append(self.clock() - t0)
         f = self._frames
         f["lp"].append(a.positions), f["lr"].append(a.rotations), f["lc"].append(a.contacts)
         f["fp"].append(b.positions), f["fr"].append(b.rotations), f["fc"].append(b.contacts)
@@ -436,7 +469,7 @@ class LiveSession:
         now = self.clock()
         self.latest = (k, a, b, arrival if arrival is not None else now)
         if arrival is not None:
-            self.latency.append(now - arrival)
+            self.latency.append((k, now - arrival))
             self._recent.append((now, now - arrival))
 
     # -- status ------------------------------------------------------------------------
@@ -483,6 +516,11 @@ class LiveSession:
         hand). A :class:`UserError` when nothing was recorded."""
         self.stop()
         with self._lock:
+            while True:  # what was put and not yet read (a caller that pumps)
+                try:
+                    self._ingest(self._queue.get_nowait())
+                except queue.Empty:
+                    break
             rows = self.rows
             valid = np.isfinite(rows.pos[:rows.n]).all(-1).any(-1) if rows.n else np.zeros(0, bool)
             n = int(np.flatnonzero(valid)[-1]) + 1 if valid.any() else 0
@@ -491,6 +529,7 @@ class LiveSession:
                                 if self.t_first is None else "the recording is too short (fewer than 2 samples)")
             if self.calibration is None:
                 self._calibrate(n)
+            self._work(None)
             times, pos, quat = rows.time[:n], rows.pos[:n], rows.quat[:n]
             with np.errstate(invalid="ignore", divide="ignore"):
                 read = apply_calibration(Take(times, pos, as_read(quat), {}), self.calibration, fill_start=False)
@@ -499,9 +538,13 @@ class LiveSession:
             T = len(output_offsets(times))
             take = Take(times.copy(), pos.copy(), quat.copy(), self.take_meta())
             duet = self._duet(T)
-            lat = np.array(self.latency) * 1000.0
-            stats = (float(np.median(lat)), float(np.percentile(lat, 99))) if lat.size else (math.nan, math.nan)
-            return LiveResult(take, duet, self.counters.snapshot(), stats)
+            return LiveResult(take, duet, self.counters.snapshot(), self._latency_stats(0.0),
+                              self._latency_stats(self.options.calibration_s + 1.0))
+
+    def _latency_stats(self, after_s):
+        """(median, 99th percentile) ms of the latency of the frames made live from ``after_s`` into the take."""
+        lat = np.array([v for k, v in self.latency if k / NET_FPS >= after_s]) * 1000.0
+        return (float(np.median(lat)), float(np.percentile(lat, 99))) if lat.size else (math.nan, math.nan)
 
     def _duet(self, T):
         from ..runtime import Duet
