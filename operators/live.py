@@ -100,6 +100,7 @@ class LiveRun:
         self.tick_s = []  # seconds per tick that posed a frame
         self.latency_s = []  # seconds from a frame's packet arrival to its posed bones
         self.last_xr = None  # (time, poses) of the last VR poll fed
+        self.xr_active = False  # Blender's VR session answered on the last tick
         self.timer = False
         self.next_status = 0.0
         self.error = None
@@ -166,6 +167,7 @@ def start(context, settings):
                                                lambda s: sink[0].put(s), counters),
                                settings.port, settings.address or "0.0.0.0")
         receiver.open()  # the port first: a clear error before anything is built
+    run = None
     try:
         synth = make_synthesizer(options.synthesis_options())
         describe = "{:s} :{:d} ".format(settings.source.lower(), receiver.port) if receiver else "blender vr "
@@ -175,6 +177,8 @@ def start(context, settings):
     except BaseException:
         if receiver is not None:
             receiver.stop()
+        if run is not None:
+            run.created.remove_all()
         raise
     sink.append(session)
     if receiver is not None:
@@ -212,6 +216,7 @@ def tick(context=None, now=None):
         from ..dancing_points_addon.live.receiver import Sample
 
         got = read_xr_state(xr_session_state(context), context)
+        run.xr_active = got is not None
         if got is not None:
             pos, quats = xr_to_motion(*got)
             poses = {d: (pos[d], quats[d]) for d in range(3) if np.isfinite(pos[d]).all()}
@@ -282,6 +287,8 @@ def status(run=None):
     if run is None:
         return None
     st = run.session.status()
+    if run.source == 'XR' and not run.xr_active:
+        st["state"] = "waiting for Blender's VR session (start it in the VR sidebar tab)"
     lat = run.latency_s[-60:]
     st["posed_ms"] = 1000.0 * float(np.median(lat)) if lat else float("nan")
     st["tick_ms"] = 1000.0 * float(np.median(run.tick_s[-60:])) if run.tick_s else float("nan")

@@ -92,9 +92,19 @@ def parser_stream(sub) -> None:
 
 # --------------------------------------------------------------------------- live
 
-def _outputs(out):
-    from ..cli import check_output_path
+def check_output_path(path) -> None:
+    """Fail before anything is received when ``path`` cannot be an output file
+    (the rules of ``synthesize``'s output)."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(path, "output folder does not exist")
+    if os.path.isdir(path):
+        raise InputError(path, "output path is a folder")
+    if not os.access(folder, os.W_OK):
+        raise InputError(path, "output folder is not writable")
 
+
+def _outputs(out):
     check_output_path(out)
     base, ext = os.path.splitext(out)
     if ext.lower() != ".npz":
