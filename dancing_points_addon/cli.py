@@ -28,6 +28,7 @@ import threading
 from .argtypes import (EXIT_OK, Parser, Terminated, add_calibration_arguments, calibration_options, exit_for,
                        height_metres, offset_metres, positive_float, positive_int, printable, thread_count)
 from .errors import InputError
+from .live.cli import parser_live, parser_stream
 
 
 
@@ -242,7 +243,7 @@ def _parser_batch(sub) -> None:
 
 # --------------------------------------------------------------------------- main
 
-PARSERS = [_parser_extract, _parser_synthesize, _parser_benchmark, _parser_batch]
+PARSERS = [_parser_extract, _parser_synthesize, _parser_benchmark, _parser_batch, parser_stream, parser_live]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -554,6 +554,20 @@ class Synthesizer:
             b.positions[:, 1] += c.floor_y
         return (b, a) if self.role == "follower" else (a, b)
 
+    def step_points(self, positions, quats, valid=(True, True, True)):
+        """One 30 Hz frame already read as :attr:`calibration` says (§2 points
+        above a floor at y = 0: :func:`~.calibration.apply_calibration` of the
+        rows, then resampled), returned in the take's frame: the frame
+        :meth:`synthesize` runs. A live loop that reads each row as it comes,
+        resamples and calls this makes the frames :meth:`synthesize` makes of
+        the same rows (:meth:`step` resamples before it reads)."""
+        a, b = self._frame(positions, quats, valid)
+        c = self.calibration
+        if c is not None and c.floor_y:
+            a.positions[:, 1] += c.floor_y
+            b.positions[:, 1] += c.floor_y
+        return a, b
+
     def _frame(self, positions, quats, valid):
         """:meth:`step` on §2 points above a floor at y = 0."""
         tracked, head_rot, root = self._clean(positions, quats, valid)

@@ -9,14 +9,16 @@ Thin translators between Blender and the bpy-free core (``dancing_points_addon``
 - ``dancing_points.synthesize`` (``synthesize``): the active take -> a baked
   duet (``bake``): leader and follower armatures with skinned bodies.
 - ``dancing_points.render_preview`` (``render``): Workbench render of the range.
+- ``dancing_points.live_start`` / ``live_stop`` (``live``): dance live from a
+  VMC or OSC stream or Blender's VR session; Stop keeps the take.
 
 ``props`` holds the data stored in the .blend, ``compat`` the Blender-version
 shims (legacy vs slotted actions, bulk keyframe I/O).
 """
 
-from . import props, take_io, synthesize, render, retarget, batch_cli, method_view, stage
+from . import props, take_io, synthesize, render, retarget, batch_cli, method_view, stage, live
 
-_modules = (props, take_io, synthesize, render, retarget, batch_cli, method_view, stage)
+_modules = (props, take_io, synthesize, render, retarget, batch_cli, method_view, stage, live)
 
 
 def register():

@@ -6,7 +6,7 @@ import tomllib
 
 import bpy
 
-from . import method, retarget
+from . import live, method, retarget
 from .common import SubPanel, split_layout
 
 _MANIFEST = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "blender_manifest.toml")
@@ -129,4 +129,5 @@ classes = (VIEW3D_PT_dancing_points, VIEW3D_PT_dancing_points_take,
 
 classes += retarget.classes
 classes += method.classes
+classes += live.classes
 register, unregister = bpy.utils.register_classes_factory(classes)

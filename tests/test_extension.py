@@ -153,6 +153,7 @@ def test_build_extension_bundles_models_and_wheels(tmp_path):
     wheels = [n for n in names if n.startswith("wheels/")]
     assert any(n.startswith("wheels/onnxruntime-") and "manylinux" in n for n in wheels), wheels
     assert not any(n.lower().startswith("wheels/numpy") for n in wheels)
+    assert any(n.startswith("wheels/python_osc-1.10.2-") and n.endswith("-none-any.whl") for n in wheels), wheels
     assert sorted("wheels/" + w.split("/")[-1] for w in manifest["wheels"]) == sorted(wheels)
     leaked = [n for n in names if n.startswith(("training/", "tests/", ".ci/", "docs/", "cache/"))
               or n.lower().endswith((".amc", ".asf", ".glb", ".fbx", ".npz"))]

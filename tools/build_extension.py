@@ -1,5 +1,6 @@
 """Build the extension zips with Blender's own tool, one per platform, with the
-ONNX Runtime wheels (and their dependencies, never numpy: Blender ships it).
+ONNX Runtime wheels (and their dependencies, never numpy: Blender ships it)
+and the pure-Python ``python-osc`` wheel of the live receiver.
 
     python -m tools.build_extension [-o dist] [--platform NAME] [--no-wheels]
 
@@ -27,6 +28,7 @@ from dancing_points_addon.errors import InputError, UserError, error_message
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 ONNXRUNTIME = "onnxruntime==1.22.1"
+PURE_WHEELS = ("python-osc==1.10.2",)  # pure Python (py3-none-any): one wheel for every platform
 # Blender platform -> pip platform tags to try (first match wins)
 PLATFORMS = {
     "linux-x64": ["manylinux_2_28_x86_64"],
@@ -66,6 +68,14 @@ def download_wheels(platform: str, cache_dir: str) -> list[str]:
             last = res.stderr.strip().splitlines()[-1:] or ["pip failed"]
         else:
             raise UserError(f"cannot download {ONNXRUNTIME} for {platform}: {last[0]}")
+    for req in PURE_WHEELS:
+        stem = req.split("==")[0].replace("-", "_") + "-"
+        if not glob.glob(os.path.join(dest, stem + "*.whl")):
+            res = subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--only-binary=:all:", "--no-deps",
+                                  "-d", dest, req], capture_output=True, text=True)
+            if res.returncode != 0:
+                last = res.stderr.strip().splitlines()[-1:] or ["pip failed"]
+                raise UserError(f"cannot download {req}: {last[0]}")
     wheels = sorted(glob.glob(os.path.join(dest, "*.whl")))
     return [w for w in wheels if not os.path.basename(w).lower().startswith("numpy-")]
 

@@ -1,0 +1,19 @@
+"""Dance live: a dancer's head and hands streamed in, the duet synthesised as
+they come, the take kept.
+
+- :mod:`.protocol`: the two network layouts (the VMC protocol, this project's
+  own OSC layout), read and written with ``python-osc``;
+- :mod:`.receiver`: the UDP receiver thread, samples and the datagram counters;
+- :mod:`.xr`: Blender's own VR session's poses in motion space (numpy only;
+  the Blender side reads ``xr_session_state``);
+- :mod:`.session`: the live loop (rows, the start, calibration, causal 30 Hz
+  resampling, the synthesizer) and what it leaves (the take and its duet);
+- :mod:`.stream`: the sender; :mod:`.cli`: the ``stream`` and ``live`` commands.
+
+Nothing here imports ``bpy``; ``python-osc`` is imported only when a packet
+is read or written.
+"""
+
+VMC_PORT = 39539  # the VMC protocol's usual receiver (performer) port
+OSC_PORT = 39540  # the default of this project's own OSC layout
+ROLES = ("leader",)  # whose points a live stream may carry: the runtime synthesises from the leader's

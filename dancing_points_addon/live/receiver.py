@@ -1,0 +1,237 @@
+"""The UDP receiver: a thread that reads datagrams, decodes them
+(:mod:`.protocol`) and hands whole samples to the live loop.
+
+A **sample** is what one sender sends for one instant: one bundle, or loose
+messages taken together while they arrive within :data:`GROUP_WINDOW_S` of
+the first, name each device at most once and no new sample number or sender
+clock opens the next. Its time is the arrival of its first datagram (this
+machine's monotonic clock), never a time tag.
+
+Every datagram is counted once (:class:`Counters`): ``used`` (it carried
+poses, a lost mark, a sample number or metadata), ``late`` (its sample came
+after a later one, by the sender's sample number or clock, or after the live
+loop had moved past its time), ``malformed`` (no OSC packet, or no message it
+carries could be read), ``ignored`` (well formed, nothing this layout reads);
+``lost``: samples the sender numbered that never came.
+"""
+from __future__ import annotations
+
+import errno
+import socket
+import threading
+import time
+
+from ..errors import UserError
+from .protocol import osc_messages
+
+GROUP_WINDOW_S = 0.002
+MAX_DATAGRAM = 65536
+RECEIVE_BUFFER = 1 << 20
+FRAME_RESTART = 100_000  # a sample number this far back is a restarted sender, not a late sample
+CLOCK_RESTART_S = 5.0  # the same for the sender's clock (/VMC/Ext/T)
+
+
+class PortInUse(UserError):
+    """The UDP port is taken (by another program or another live session)."""
+
+
+class Counters:
+    """Datagram accounting, shared by the receiver thread and the live loop."""
+
+    FIELDS = ("datagrams", "used", "late", "malformed", "ignored", "lost", "bad_messages", "samples")
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        for f in self.FIELDS:
+            setattr(self, f, 0)
+
+    def add(self, **kw) -> None:
+        with self._lock:
+            for k, v in kw.items():
+                setattr(self, k, getattr(self, k) + v)
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            return {f: getattr(self, f) for f in self.FIELDS}
+
+    @property
+    def dropped(self) -> int:
+        return self.late + self.malformed + self.ignored
+
+
+class Sample:
+    """One instant of the stream: ``time`` (arrival, seconds of the receiver's
+    clock), ``poses {device: (position, quaternion) or None (lost)}``, the
+    sender's ``frame`` number and ``clock``, take ``meta`` and how many
+    ``datagrams`` made it."""
+
+    __slots__ = ("time", "poses", "frame", "clock", "meta", "datagrams")
+
+    def __init__(self, time, poses=None, frame=None, clock=None, meta=None, datagrams=1):
+        self.time = time
+        self.poses = dict(poses or {})
+        self.frame = frame
+        self.clock = clock
+        self.meta = dict(meta or {})
+        self.datagrams = datagrams
+
+
+class SampleAssembler:
+    """Datagrams -> samples (see the module docstring), without the socket:
+    :meth:`datagram` for each arrival, :meth:`flush` when the window passes.
+    ``sink(sample)`` receives each whole sample that is not late."""
+
+    def __init__(self, decoder, sink, counters: Counters | None = None, window: float = GROUP_WINDOW_S):
+        self.decoder = decoder
+        self.sink = sink
+        self.counters = counters or Counters()
+        self.window = float(window)
+        self.pending = None
+        self.last_frame = None
+        self.last_clock = None
+
+    def datagram(self, data: bytes, t: float) -> None:
+        c = self.counters
+        c.add(datagrams=1)
+        try:
+            msgs = osc_messages(data)
+            pk = self.decoder.decode(msgs)
+        except Exception:  # noqa: BLE001 - MalformedPacket, or a packet the decoder did not foresee: never fatal
+            c.add(malformed=1)
+            return
+        if pk.bad:
+            c.add(bad_messages=pk.bad)
+        if not pk.known:
+            c.add(ignored=1)
+            return
+        if pk.known == pk.bad:
+            c.add(malformed=1)
+            return
+        if not pk.poses and pk.frame is None and not pk.meta:
+            c.add(ignored=1)  # a sender's clock or status alone
+            if pk.clock is not None and self.pending is None:
+                self._check_clock(pk.clock)
+            return
+        p = self.pending
+        bundle = data[:8] == b"#bundle\x00"
+        if p is not None and (bundle or pk.frame is not None or pk.clock is not None or t - p.time > self.window
+                              or any(d in p.poses for d in pk.poses)):
+            self.flush()
+            p = None
+        if p is None:
+            p = self.pending = Sample(t, pk.poses, pk.frame, pk.clock, pk.meta, 1)
+        else:
+            p.poses.update(pk.poses)
+            p.meta.update(pk.meta)
+            p.datagrams += 1
+        if bundle or len(p.poses) == 3:
+            self.flush()
+
+    def due(self, now: float) -> float | None:
+        """Seconds until the pending sample's window closes (None: nothing pending)."""
+        return None if self.pending is None else max(0.0, self.pending.time + self.window - now)
+
+    def flush(self) -> None:
+        s, self.pending = self.pending, None
+        if s is None:
+            return
+        c = self.counters
+        late = False
+        if s.frame is not None:
+            last = self.last_frame
+            if last is not None and last - FRAME_RESTART < s.frame <= last:
+                late = True
+            else:
+                if last is not None and s.frame > last + 1:
+                    c.add(lost=s.frame - last - 1)
+                self.last_frame = s.frame
+        elif s.clock is not None:
+            late = not self._check_clock(s.clock)
+        if late:
+            c.add(late=s.datagrams)
+            return
+        c.add(used=s.datagrams)
+        self.sink(s)
+
+    def _check_clock(self, clock: float) -> bool:
+        last = self.last_clock
+        if last is not None and last - CLOCK_RESTART_S < clock <= last:
+            return False
+        self.last_clock = clock
+        return True
+
+
+class UdpReceiver:
+    """A thread receiving on UDP ``host:port`` into a :class:`SampleAssembler`.
+    :meth:`start` binds (a :class:`PortInUse` when the port is taken);
+    :meth:`stop` ends the thread and closes the socket."""
+
+    def __init__(self, assembler: SampleAssembler, port: int, host: str = "0.0.0.0", clock=time.perf_counter):
+        self.assembler = assembler
+        self.port = int(port)
+        self.host = host
+        self.clock = clock
+        self.sock = None
+        self.thread = None
+        self._stop = threading.Event()
+        self.error = None  # an unexpected failure of the thread (it ends; the loop reports it)
+
+    def open(self) -> None:
+        """Bind the socket (datagrams wait in it until :meth:`start`)."""
+        if self.sock is not None:
+            return
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((self.host, self.port))
+        except OSError as exc:
+            sock.close()
+            if exc.errno in (errno.EADDRINUSE, errno.EACCES, getattr(errno, "WSAEADDRINUSE", -1)):
+                raise PortInUse(f"UDP port {self.port} is already in use on {self.host} (another program, or "
+                                f"another live session, receives on it): close it or choose another port") from None
+            raise UserError(f"cannot receive on UDP {self.host}:{self.port}: {exc.strerror or exc}") from None
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
+        except OSError:
+            pass
+        self.port = sock.getsockname()[1]  # the port actually bound (port 0: any free one)
+        self.sock = sock
+
+    def start(self) -> None:
+        """Bind (unless :meth:`open` did) and start the thread."""
+        self.open()
+        self.thread = threading.Thread(target=self._run, name=f"dancing_points_live_udp_{self.port}", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        sock, asm, clock = self.sock, self.assembler, self.clock
+        try:
+            while not self._stop.is_set():
+                wait = asm.due(clock())
+                sock.settimeout(0.05 if wait is None else max(wait, 1e-4))
+                try:
+                    data = sock.recv(MAX_DATAGRAM)
+                except socket.timeout:
+                    if asm.pending is not None and asm.due(clock()) == 0.0:
+                        asm.flush()
+                    continue
+                except OSError:
+                    if self._stop.is_set():
+                        break
+                    continue
+                asm.datagram(data, clock())
+            asm.flush()
+        except Exception as exc:  # noqa: BLE001 - kept for the loop to report; never a traceback in a thread
+            self.error = exc
+
+    @property
+    def alive(self) -> bool:
+        return self.thread is not None and self.thread.is_alive()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        if self.thread is not None:
+            self.thread.join(timeout)
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+        self.thread = None

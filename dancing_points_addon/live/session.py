@@ -1,0 +1,563 @@
+"""The live loop: samples in, the duet out frame by frame, the take kept.
+
+:class:`LiveSession` takes :class:`~.receiver.Sample` s from any source (the
+UDP receiver's thread, Blender's VR session polled on the main thread) and, in
+its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
+
+1. **rows**: each sample becomes a take row at its arrival time. A device the
+   sample does not name keeps its last pose if that is at most
+   :attr:`LiveOptions.gap_s` old, else it is lost (NaN, SPEC §3); a device the
+   sender marks lost is lost at once. When nothing arrives for ``gap_s`` the
+   loop adds rows of lost devices, one a frame, so the duet goes on (the
+   runtime stands in for lost devices). A sample whose time is not after the
+   last row's is late: dropped and counted. Times are kept to the microsecond
+   and every value as a take file writes and reads it back
+   (:func:`as_written`), so the rows *are* the take file.
+2. **the start**: the take starts at the first row where all three devices
+   are tracked, so it has no lost start to fill (offline synthesis fills one by
+   looking ahead, which a live loop cannot).
+3. **calibration**: with the height and the floor known (options, or the
+   stream's metadata) the duet starts at once; otherwise the first
+   :attr:`LiveOptions.calibration_s` seconds of rows are calibrated like a
+   take (:meth:`~..runtime.Synthesizer.calibrate`: the height, and the floor
+   when the height is given) and the duet starts then, from the first row. The
+   values used are the ones the take's metadata carry (``height_m`` and
+   ``floor_y`` to 0.1 mm), so the take reads back with the same calibration.
+4. **frames**: each row is read as the calibration says, as
+   :func:`~..calibration.apply_calibration` reads a take, then resampled
+   causally to 30 Hz (:class:`CausalResampler`: the frames of
+   :func:`~..resample.resample_take`, each made once the row after it has
+   come) and synthesised (:meth:`~..runtime.Synthesizer.step_points`).
+
+:meth:`LiveSession.finish` ends it: trailing rows of lost devices are dropped
+(with the frames made from them) and it returns the take and the duet
+(:class:`LiveResult`); ``synthesize`` of that take gives that duet.
+"""
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..calibration import Calibration, apply_calibration
+from ..errors import UserError
+from ..formats.take import Take
+from ..resample import NET_FPS, _bracket_rel, _tolerance, output_offsets
+from ..rotations import quat_slerp
+from . import ROLES
+from .receiver import Counters, Sample
+SOURCE_DEVICES = {"vmc": "openxr", "osc": "joints", "xr": "openxr"}
+_IDENT = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+@dataclass(frozen=True)
+class LiveOptions:
+    """What a live session is told. ``source``: ``vmc``, ``osc`` or ``xr``
+    (Blender's VR session); ``height`` (m) and ``floor_y`` (m): given, or None
+    (the stream's metadata, else estimated from the first ``calibration_s``
+    seconds); ``devices``: SPEC §3 devices of the poses (None: the stream's
+    metadata, else :data:`SOURCE_DEVICES`); ``role``: whose points these are
+    (passed to the take's metadata); ``gap_s``: a device unheard for longer is
+    lost; ``record_predictions``: keep the mapping's predictions and the planted
+    feet (for Blender's method view)."""
+
+    source: str = "vmc"
+    height: float | None = None
+    floor_y: float | None = None
+    devices: str | None = None
+    head_offset: tuple | None = None
+    hand_offset: tuple | None = None
+    role: str = "leader"
+    calibration_s: float = 1.0
+    gap_s: float = 0.1
+    models: str | None = None
+    threads: int = 1
+    foot_lock: bool = True
+    hand_ik: bool = True
+    follow_devices: bool = True
+    record_predictions: bool = False
+
+    def synthesis_options(self):
+        from ..runtime import SynthesisOptions
+
+        return SynthesisOptions(models=self.models, threads=self.threads, height=self.height,
+                                foot_lock=self.foot_lock, hand_ik=self.hand_ik, floor_y=self.floor_y,
+                                devices=self.devices, head_offset=self.head_offset, hand_offset=self.hand_offset,
+                                follow_devices=self.follow_devices)
+
+
+def as_written(positions, quats):
+    """One row's ``(positions (3, 3), quats (3, 4))`` as
+    :func:`~..formats.take.write_take` writes it (ten significant digits; a
+    device with any non-finite value lost in all seven). Written again, the
+    same text."""
+    vals = np.concatenate([np.asarray(positions, np.float64), np.asarray(quats, np.float64)], axis=-1)
+    dev = np.array([float("%.10g" % v) for v in vals.ravel().tolist()]).reshape(3, 7)
+    dev[np.isnan(dev).any(-1)] = np.nan
+    return dev[:, :3].copy(), dev[:, 3:].copy()
+
+
+def as_read(quats):
+    """Written quaternions ``(..., 4)`` as :func:`~..formats.take.read_take` gives them: normalised."""
+    with np.errstate(invalid="ignore"):
+        return quats / np.linalg.norm(quats, axis=-1)[..., None]
+
+
+class CausalResampler:
+    """The 30 Hz frames of :func:`~..resample.resample_take`, each made as soon
+    as a row after it has come: output frame ``k`` at ``k / fps`` after the first
+    row, positions linear and rotations slerped between the rows around it, lost
+    where a row it takes weight from is lost. Rows are times relative to the
+    first (which is 0), strictly increasing."""
+
+    def __init__(self, fps: float = NET_FPS):
+        self.fps = float(fps)
+        self.k = 0  # the next frame to make
+        self.prev = None  # (t, pos, quat, valid) of the row before the last
+        self.last = None
+        self.t_first = None
+
+    def _row(self, t, pos, quat, valid):
+        v = np.asarray(valid, dtype=bool)
+        return (float(t), np.where(v[:, None], pos, 0.0), np.where(v[:, None], quat, _IDENT), v)
+
+    def add(self, t, pos, quat, valid) -> list:
+        """Rows in order; returns the frames now made: ``(k, pos (3, 3), quat (3, 4), valid (3,))``."""
+        row = self._row(t, pos, quat, valid)
+        if self.t_first is None:
+            self.t_first = row[0]
+        self.prev, self.last = self.last, row
+        if self.prev is None:
+            return []
+        tol = _tolerance(np.array([self.t_first, row[0]]))
+        out = []
+        while self.k / self.fps + tol < row[0]:
+            out.append(self._frame(self.k, self.prev, self.last, tol))
+            self.k += 1
+        return out
+
+    def _frame(self, k, r0, r1, tol):
+        off = k / self.fps
+        rel = np.array([r0[0], r1[0]])
+        _, a = _bracket_rel(rel, np.array([off]), tol)
+        return self._interp(k, r0, r1, float(a[0]))
+
+    @staticmethod
+    def _interp(k, r0, r1, a):
+        _, p0, q0, v0 = r0
+        _, p1, q1, v1 = r1
+        ok = (v0 | (a >= 1.0)) & (v1 | (a <= 0.0))
+        p = p0 + (p1 - p0) * a
+        q = quat_slerp(q0, q1, np.full(3, a))
+        p[~ok] = np.nan
+        q[~ok] = np.nan
+        return k, p, q, ok
+
+    def finish(self, times, positions, quats) -> list:
+        """The frames still to make at the end of a take of these rows (all of
+        it, relative times): those :func:`~..resample.resample_take` makes up to
+        the last row, bracketed over the whole take as it does."""
+        times = np.asarray(times, dtype=np.float64)
+        offs = output_offsets(times, self.fps)
+        if self.k >= len(offs) or len(times) < 2:
+            return []
+        tol = _tolerance(times)
+        ks = np.arange(self.k, len(offs))
+        i, a = _bracket_rel(times - times[0], offs[ks], tol)
+        valid = np.isfinite(positions).all(-1) & np.isfinite(quats).all(-1)
+        out = []
+        for k, ii, aa in zip(ks.tolist(), i.tolist(), a.tolist()):
+            r0 = self._row(times[ii], positions[ii], quats[ii], valid[ii])
+            r1 = self._row(times[ii + 1], positions[ii + 1], quats[ii + 1], valid[ii + 1])
+            out.append(self._interp(k, r0, r1, aa))
+        self.k = len(offs)
+        return out
+
+
+class _Rows:
+    """The take's rows so far, in arrays that grow by doubling."""
+
+    def __init__(self):
+        self.n = 0
+        self.time = np.empty(1024)
+        self.pos = np.empty((1024, 3, 3))
+        self.quat = np.empty((1024, 3, 4))
+        self.arrival = np.empty(1024)  # this machine's clock when the row was made (for latency)
+
+    def append(self, t, pos, quat, arrival):
+        if self.n == len(self.time):
+            m = 2 * self.n
+            for name in ("time", "pos", "quat", "arrival"):
+                old = getattr(self, name)
+                new = np.empty((m,) + old.shape[1:])
+                new[:self.n] = old[:self.n]
+                setattr(self, name, new)
+        self.time[self.n], self.pos[self.n], self.quat[self.n], self.arrival[self.n] = t, pos, quat, arrival
+        self.n += 1
+
+    def take(self, n=None, meta=None) -> Take:
+        """The first ``n`` rows as a take file reads them back."""
+        n = self.n if n is None else n
+        return Take(self.time[:n].copy(), self.pos[:n].copy(), as_read(self.quat[:n]), dict(meta or {}))
+
+
+@dataclass
+class LiveResult:
+    """What a session leaves: the ``take`` (its metadata reproduce the
+    calibration), the ``duet`` synthesised from it (None when the take is too
+    short for one) and the counters."""
+
+    take: Take
+    duet: object
+    counters: dict
+    latency_ms: tuple  # (median, 99th percentile) of the frames made live, or (nan, nan)
+    steady_ms: tuple = (math.nan, math.nan)  # the same from a second after the calibration (caught up)
+
+
+def _offset_text(v) -> str:
+    return ",".join(repr(float(c)) for c in v)
+
+
+class LiveSession:
+    """See the module docstring. ``synthesizer``: a
+    :class:`~..runtime.Synthesizer` (default: one made from the options);
+    ``counters``: the receiver's (shared accounting); ``clock``: the clock the
+    samples' times are on."""
+
+    def __init__(self, options: LiveOptions, synthesizer=None, counters: Counters | None = None,
+                 clock=time.perf_counter, describe: str = ""):
+        if options.role not in ROLES:
+            raise UserError(f"role {options.role!r} cannot be streamed yet (roles: {', '.join(ROLES)})")
+        if synthesizer is None:
+            from ..runtime import Synthesizer
+            synthesizer = Synthesizer(options.synthesis_options())
+        self.options = options
+        self.synth = synthesizer
+        self.record = bool(options.record_predictions)
+        if self.record:
+            synthesizer.record_predictions = True
+        self.counters = counters or Counters()
+        self.clock = clock
+        self.describe = describe
+        self.rows = _Rows()
+        self.t_first = None  # the clock's time of the take's first row
+        self.stream_meta = {}
+        self.calibration = None
+        self.resampler = CausalResampler()
+        self._last_dev = [None, None, None]  # per device: (clock time, (position, quat)) last heard
+        self._done = 0  # rows read into frames
+        self._catchup = 0  # rows read when the calibration came (not live: no latency counted)
+        self._silent = False  # the last row was made of silence
+        self._frames = {k: [] for k in ("lp", "lr", "lc", "fp", "fr", "fc", "pred", "planted")}
+        self.latest = None  # (k, leader DuetFrame, follower DuetFrame, arrival of the row that made it)
+        self.latency = []  # (frame, seconds from a row's arrival to the frame), frames made live (not catching up)
+        self.compute_s = []  # seconds of synthesis per frame
+        self._recent = deque(maxlen=64)  # (clock time, latency) of the last frames
+        self._arrivals = deque(maxlen=256)  # clock times of the last samples (the input rate)
+        self._queue = queue.SimpleQueue()
+        self._thread = None
+        self._stop = threading.Event()
+        self.error = None
+        self._lock = threading.Lock()  # feed/tick/finish: one at a time
+
+    # -- input -------------------------------------------------------------------
+    def put(self, sample: Sample) -> None:
+        """From any thread: one sample for the loop."""
+        self._queue.put(sample)
+
+    # -- the thread ------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="dancing_points_live_loop", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                try:
+                    s = self._queue.get(timeout=self._wait())
+                except queue.Empty:
+                    self.tick(self.clock())
+                    continue
+                self.feed(s)
+            while True:  # what came before the stop
+                try:
+                    self.feed(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+        except Exception as exc:  # noqa: BLE001 - reported by whoever owns the session
+            self.error = exc
+
+    def _wait(self) -> float:
+        if self.t_first is None:
+            return 0.05
+        due = self._last_abs + (1.0 / NET_FPS if self._silent else self.options.gap_s)
+        return min(0.05, max(1e-4, due - self.clock()))
+
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """End the thread (samples already put are read first)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+
+    # -- the loop (one caller at a time) ------------------------------------------------
+    def feed(self, s: Sample) -> None:
+        """One sample (see the module docstring), and the frames it makes."""
+        with self._lock:
+            self._ingest(s)
+            self._work(None)
+
+    def tick(self, now: float) -> None:
+        """Nothing has come: after ``gap_s`` (then every frame) a row of lost devices."""
+        with self._lock:
+            self._silence(now)
+            self._work(None)
+
+    def pump(self, now: float, budget_s: float | None = None) -> int:
+        """For a caller that runs the loop itself (Blender's main thread, no
+        loop thread): the samples put so far, silence up to ``now``, then
+        their frames; the first second's catch-up for at most ``budget_s``
+        seconds a call (the rest on the next calls: it never blocks long).
+        Returns the rows still to read into frames."""
+        with self._lock:
+            while True:
+                try:
+                    self._ingest(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            self._silence(now)
+            return self._work(budget_s)
+
+    def _ingest(self, s: Sample) -> None:
+        self._arrivals.append(s.time)
+        if s.meta:
+            self.stream_meta.update(s.meta)
+        if not s.poses:
+            return
+        pos = np.full((3, 3), np.nan)
+        quat = np.full((3, 4), np.nan)
+        for d in range(3):
+            if d in s.poses:
+                v = s.poses[d]
+                self._last_dev[d] = None if v is None else (s.time, v)
+            else:
+                last = self._last_dev[d]
+                v = last[1] if last is not None and s.time - last[0] <= self.options.gap_s else None
+            if v is not None:
+                pos[d], quat[d] = v
+        self._row(s.time, pos, quat, s.datagrams)
+
+    def _silence(self, now: float) -> None:
+        if self.t_first is None:
+            return
+        due = self._last_abs + (1.0 / NET_FPS if self._silent else self.options.gap_s)
+        if now < due:
+            return
+        pos = np.full((3, 3), np.nan)
+        quat = np.full((3, 4), np.nan)
+        for d in range(3):
+            last = self._last_dev[d]
+            if last is not None and now - last[0] <= self.options.gap_s:
+                pos[d], quat[d] = last[1]
+        self._row(now, pos, quat, 0, silent=True)
+
+    def _row(self, t_abs, pos, quat, datagrams, silent=False):
+        valid = np.isfinite(pos).all(-1) & np.isfinite(quat).all(-1)
+        if self.t_first is None:
+            if not valid.all():
+                return  # the take starts where the dancer is first seen whole
+            self.t_first = t_abs
+        t = round(t_abs - self.t_first, 6)
+        rows = self.rows
+        if rows.n and t <= rows.time[rows.n - 1]:
+            if datagrams:
+                self.counters.add(late=datagrams, used=-datagrams)
+            return
+        pos, quat = as_written(pos, quat)
+        rows.append(t, pos, quat, t_abs)
+        self._last_abs = t_abs
+        self._silent = silent and not valid.any()
+        if datagrams or not silent:
+            self.counters.add(samples=1)
+        if self.calibration is None and self._can_calibrate(t):
+            self._calibrate(rows.n)
+
+    def _known(self, key, option):
+        if option is not None:
+            return True
+        return self.stream_meta.get(key) not in (None, "")
+
+    def _can_calibrate(self, t) -> bool:
+        o = self.options
+        return t >= o.calibration_s or (self._known("height_m", o.height) and self._known("floor_y", o.floor_y))
+
+    def _meta(self) -> dict:
+        """The stream's metadata the calibration reads (devices, height, floor,
+        offsets), each only when it is a value a take file may carry."""
+        from ..formats.devices import DEVICE_KINDS, META_OFFSET_KEYS, parse_offset
+
+        meta = {}
+        for key, v in self.stream_meta.items():
+            try:
+                if key == "devices" and v in DEVICE_KINDS:
+                    meta[key] = v
+                elif key == "height_m" and 0.5 <= float(v) <= 3.0:
+                    meta[key] = float(v)
+                elif key == "floor_y" and abs(float(v)) <= 1.0:
+                    meta[key] = v
+                elif key in META_OFFSET_KEYS:
+                    parse_offset(v, key)
+                    meta[key] = v
+            except (ValueError, UserError):
+                continue
+        meta.setdefault("devices", SOURCE_DEVICES.get(self.options.source, "joints"))
+        return meta
+
+    def _calibrate(self, n) -> None:
+        """Calibrate on the first ``n`` rows (as a take: the options, the stream's
+        metadata, else estimated), keep what the take's metadata will say, and
+        read the rows so far into frames."""
+        c = self.synth.calibrate(self.rows.take(n, self._meta()))
+        meta = c.meta()
+        self.calibration = Calibration(c.devices, float(meta["height_m"]), c.height_source, float(meta["floor_y"]),
+                                       c.floor_source, c.offsets)
+        self.synth.set_calibration(self.calibration)
+        self._catchup = n  # the rows before: read into frames at once, not live
+
+    def _work(self, budget_s) -> int:
+        """Read the rows not yet read into frames (the catch-up's for at most
+        ``budget_s`` seconds; None: all); returns how many are left."""
+        c = self.calibration
+        rows = self.rows
+        if c is None:
+            return 0
+        t0 = self.clock() if budget_s is not None else 0.0
+        while self._done < rows.n:
+            i = self._done
+            one = Take(rows.time[i:i + 1], rows.pos[i:i + 1], as_read(rows.quat[i:i + 1]), {})
+            with np.errstate(invalid="ignore", divide="ignore"):  # lost devices: NaN in, NaN out
+                read = apply_calibration(one, c, fill_start=False)
+            p, q = read.positions[0], read.quats[0]
+            valid = np.isfinite(p).all(-1) & np.isfinite(q).all(-1)
+            for k, pk, qk, ok in self.resampler.add(rows.time[i], p, q, valid):
+                self._step(k, pk, qk, ok, rows.arrival[i] if i >= self._catchup else None)
+            self._done = i + 1
+            if budget_s is not None and self._done < self._catchup and self.clock() - t0 >= budget_s:
+                break
+        return rows.n - self._done
+
+    def _step(self, k, pos, quat, ok, arrival) -> None:
+        t0 = self.clock()
+        a, b = self.synth.step_points(pos, quat, ok)
+        self.compute_s.append(self.clock() - t0)
+        f = self._frames
+        f["lp"].append(a.positions), f["lr"].append(a.rotations), f["lc"].append(a.contacts)
+        f["fp"].append(b.positions), f["fr"].append(b.rotations), f["fc"].append(b.contacts)
+        if self.record:
+            f["pred"].append(self.synth.last_prediction)
+            pl = self.synth.planted()
+            f["planted"].append(pl if pl is not None else [[False] * 4] * 2)
+        now = self.clock()
+        self.latest = (k, a, b, arrival if arrival is not None else now)
+        if arrival is not None:
+            self.latency.append((k, now - arrival))
+            self._recent.append((now, now - arrival))
+
+    # -- status ------------------------------------------------------------------------
+    def status(self, now: float | None = None) -> dict:
+        """Input rate (samples a second over the last second), frames made, the
+        counters, the latency (ms, median of the last frames), the state."""
+        now = self.clock() if now is None else now
+        recent = [t for t in list(self._arrivals) if now - t <= 1.0]
+        lat = [v for t, v in list(self._recent) if now - t <= 2.0]
+        c = self.counters.snapshot()
+        if self.t_first is None:
+            state = "waiting for the dancer (head and both hands)"
+        elif self.calibration is None:
+            state = "calibrating"
+        else:
+            state = "dancing"
+        return {"rate_hz": float(len(recent)), "frames": len(self._frames["lp"]), "state": state,
+                "latency_ms": 1000.0 * float(np.median(lat)) if lat else math.nan,
+                "seconds": 0.0 if self.t_first is None else max(0.0, now - self.t_first), **c,
+                "dropped": c["late"] + c["malformed"] + c["ignored"]}
+
+    def status_line(self, now: float | None = None) -> str:
+        s = self.status(now)
+        lat = "-" if math.isnan(s["latency_ms"]) else f"{s['latency_ms']:.1f} ms"
+        return (f"{self.describe}{s['state']} {s['seconds']:.1f} s | in {s['rate_hz']:.0f} Hz | "
+                f"duet frame {s['frames']} | dropped {s['dropped']} (late {s['late']}, bad {s['malformed']}, "
+                f"other {s['ignored']}) | lost {s['lost']} | latency {lat}")
+
+    # -- the end -------------------------------------------------------------------------
+    def take_meta(self) -> dict:
+        c = self.calibration
+        meta = dict(c.meta())
+        meta["role"] = self.options.role
+        for key, v in zip(("head_offset_m", "lhand_offset_m", "rhand_offset_m"),
+                          (c.offsets.head, c.offsets.lhand, c.offsets.rhand)):
+            if v is not None:
+                meta[key] = _offset_text(v)
+        if self.describe:
+            meta["recorded"] = self.describe.strip().rstrip(":")
+        return meta
+
+    def finish(self) -> LiveResult:
+        """The take and its duet (call after :meth:`stop`, or when feeding by
+        hand). A :class:`UserError` when nothing was recorded."""
+        self.stop()
+        with self._lock:
+            while True:  # what was put and not yet read (a caller that pumps)
+                try:
+                    self._ingest(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            rows = self.rows
+            valid = np.isfinite(rows.pos[:rows.n]).all(-1).any(-1) if rows.n else np.zeros(0, bool)
+            n = int(np.flatnonzero(valid)[-1]) + 1 if valid.any() else 0
+            if n < 2:
+                raise UserError("nothing recorded: no sample with the head and both hands tracked came"
+                                if self.t_first is None else "the recording is too short (fewer than 2 samples)")
+            if self.calibration is None:
+                self._calibrate(n)
+            self._work(None)
+            times, pos, quat = rows.time[:n], rows.pos[:n], rows.quat[:n]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                read = apply_calibration(Take(times, pos, as_read(quat), {}), self.calibration, fill_start=False)
+            for k, pk, qk, ok in self.resampler.finish(times, read.positions, read.quats):
+                self._step(k, pk, qk, ok, None)
+            T = len(output_offsets(times))
+            take = Take(times.copy(), pos.copy(), quat.copy(), self.take_meta())
+            duet = self._duet(T)
+            return LiveResult(take, duet, self.counters.snapshot(), self._latency_stats(0.0),
+                              self._latency_stats(self.options.calibration_s + 1.0))
+
+    def _latency_stats(self, after_s):
+        """(median, 99th percentile) ms of the latency of the frames made live from ``after_s`` into the take."""
+        lat = np.array([v for k, v in self.latency if k / NET_FPS >= after_s]) * 1000.0
+        return (float(np.median(lat)), float(np.percentile(lat, 99))) if lat.size else (math.nan, math.nan)
+
+    def _duet(self, T):
+        from ..runtime import Duet
+
+        f = self._frames
+        if T < 1 or len(f["lp"]) < T:
+            return None
+        c = self.calibration
+        stack = lambda key: np.array(f[key][:T])  # noqa: E731
+        preds = stack("pred") if self.record and f["pred"] and f["pred"][0] is not None else None
+        if preds is not None and c.floor_y:  # on the take's floor, as synthesize keeps them
+            preds[..., 1] += np.float32(c.floor_y)
+        planted = np.array(f["planted"][:T], dtype=bool) if self.record else None
+        return Duet(np.arange(T) / NET_FPS, stack("lp"), stack("lr"), stack("lc"), stack("fp"), stack("fr"),
+                    stack("fc"), bone_vectors=self.synth.output_bone_vectors(), predictions=preds,
+                    planted=planted, calibration=c)

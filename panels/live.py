@@ -1,0 +1,56 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""The sidebar's *Live* section: the source, Start / Stop and the status."""
+
+import math
+
+import bpy
+
+from .common import SubPanel, split_layout
+
+
+class VIEW3D_PT_dancing_points_live(SubPanel, bpy.types.Panel):
+    bl_idname = "VIEW3D_PT_dancing_points_live"
+    bl_label = "Live"
+    bl_options = {'DEFAULT_CLOSED'}
+
+    def draw(self, context):
+        from ..operators import live
+
+        layout, settings = split_layout(self.layout, context, "dancing_points_live")
+        if settings is None:
+            return
+        run = live.running()
+        col = layout.column()
+        col.enabled = run is None
+        col.prop(settings, "source")
+        if settings.source != 'XR':
+            col.prop(settings, "port")
+            col.prop(settings, "address")
+        if settings.source == 'VMC':
+            col.prop(settings, "left_serial")
+            col.prop(settings, "right_serial")
+        col.prop(settings, "role")
+        col.prop(settings, "height")
+        row = col.row(heading="Floor")
+        row.prop(settings, "use_floor_y", text="")
+        sub = row.row()
+        sub.active = settings.use_floor_y
+        sub.prop(settings, "floor_y", text="")
+        layout.prop(settings, "bake")
+        if run is None:
+            layout.operator("dancing_points.live_start", text="Start", icon='PLAY')
+            return
+        layout.operator("dancing_points.live_stop", text="Stop (Keep Take)", icon='SNAP_FACE')
+        st = live.status(run)
+        box = layout.box().column(align=True)
+        box.label(text="{:s}, {:.1f} s".format(st["state"].capitalize(), st["seconds"]))
+        box.label(text="Input {:.0f} Hz, duet frame {:d}".format(st["rate_hz"], st["frames"]))
+        box.label(text="Dropped {:d} (late {:d}, bad {:d}), lost {:d}".format(
+            st["dropped"], st["late"], st["malformed"], st["lost"]))
+        posed = st["posed_ms"]
+        box.label(text="Latency {:s}".format("-" if math.isnan(posed) else "{:.1f} ms".format(posed)))
+        if st["error"]:
+            box.label(text=st["error"], icon='ERROR')
+
+
+classes = (VIEW3D_PT_dancing_points_live,)

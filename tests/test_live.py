@@ -1,0 +1,599 @@
+"""Dance live, the core (``dancing_points_addon.live``): the VMC and OSC layouts,
+sample assembly and the datagram counts, the causal resampler, the live loop
+against ``synthesize`` of the take it records, a fuzz of malformed packets,
+the receiver's start and stop, and ``stream`` and ``live`` as two processes on
+127.0.0.1 (the shipped models, the embedded sample take).
+
+Network tests use 127.0.0.1 only, bounded in packets and seconds.
+"""
+from __future__ import annotations
+
+import os
+import random
+import re
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from conftest import MODELS, ROOT
+from dancing_points_addon.calibration import headset_take
+from dancing_points_addon.formats.take import parse_take_bytes, read_take, take_to_text, write_take
+from dancing_points_addon.live import protocol as P
+from dancing_points_addon.live.receiver import Counters, PortInUse, Sample, SampleAssembler, UdpReceiver
+from dancing_points_addon.live.session import CausalResampler, LiveOptions, LiveSession, as_read
+from dancing_points_addon.live.stream import stream_rows, stream_take
+from dancing_points_addon.live.xr import motion_to_xr, xr_to_motion
+from dancing_points_addon.resample import resample_take
+from dancing_points_addon.rotations import quat_to_matrix
+from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+
+SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"
+SPEC_KEYS = ("time", "leader_positions", "leader_rotations", "leader_contacts", "follower_positions",
+             "follower_rotations", "follower_contacts", "height_m", "floor_y")
+# The live duet and synthesize's of the recorded take run the same code on the same numbers:
+# they are expected to be equal; this is the bound the tests allow (metres, rotation entries).
+TOL = 1e-9
+
+
+def _env():
+    return {**os.environ, "PYTHONPATH": str(ROOT), "DP_MODEL_DIR": MODELS}
+
+
+@pytest.fixture(scope="module")
+def take():
+    return read_take(SAMPLE)
+
+
+@pytest.fixture(scope="module")
+def synth():
+    return Synthesizer(SynthesisOptions(models=MODELS))
+
+
+def _offline(synth, take_obj):
+    """``synthesize`` of a take as the command line reads it (written, read back)."""
+    tk = parse_take_bytes(take_to_text(take_obj).encode(), "<live take>")
+    return Synthesizer(SynthesisOptions(models=MODELS, height=tk.height), nets=synth.nets).synthesize(tk), tk
+
+
+def _max_diff(a, b):
+    a, b = a.arrays(), b.arrays()
+    return {k: float(np.max(np.abs(np.asarray(a[k], float) - np.asarray(b[k], float)))) for k in SPEC_KEYS}
+
+
+def _feed(session, times, positions, quats, t0=100.0, skip=()):
+    for i, t in enumerate(times):
+        if i in skip:
+            continue
+        poses = {d: (positions[i, d], quats[i, d]) for d in range(3) if np.isfinite(positions[i, d]).all()}
+        session.feed(Sample(t0 + float(t), poses))
+
+
+# --------------------------------------------------------------------------- layouts
+
+def test_unity_conversion_mirrors_z_and_keeps_the_view_axes():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        p = rng.normal(size=3)
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        up, uq = P.motion_to_unity(p, q)
+        p2, q2 = P.unity_to_motion(up, uq)
+        assert np.allclose(p2, p) and np.allclose(q2, q)
+        # the rotation is the mirror image: R_motion = M R_unity M, M = diag(1, 1, -1)
+        Ru = quat_to_matrix(np.array([uq[3], uq[0], uq[1], uq[2]]))
+        M = np.diag([1.0, 1.0, -1.0])
+        assert np.allclose(quat_to_matrix(np.array(q2)), M @ Ru @ M)
+    # a Unity headset turned 180 degrees about Y looks along Unity -Z: motion +Z, the SPEC §3
+    # head quaternion (0, 0, 1, 0) of a wearer facing +Z
+    _, q = P.unity_to_motion((0, 1.6, 0), (0.0, 1.0, 0.0, 0.0))
+    assert np.allclose(np.abs(q), [0, 0, 1, 0])
+    fwd = quat_to_matrix(np.array(q)) @ np.array([0.0, 0.0, -1.0])
+    assert np.allclose(fwd, [0, 0, 1])
+
+
+def _vmc_bundle(head, hands, frame=None, clock=None, names=("ctrlA", "ctrlB"), kind=P.VMC_CON):
+    from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+    from pythonosc.osc_message_builder import OscMessageBuilder
+
+    b = OscBundleBuilder(IMMEDIATELY)
+
+    def add(addr, *args):
+        m = OscMessageBuilder(address=addr)
+        for a in args:
+            m.add_arg(a)
+        b.add_content(m.build())
+
+    if clock is not None:
+        add(P.VMC_TIME, float(clock))
+    add(P.VMC_HMD, "hmd", *map(float, P.motion_to_unity(*head)[0]), *map(float, P.motion_to_unity(*head)[1]))
+    for name, (p, q) in zip(names, hands):
+        up, uq = P.motion_to_unity(p, q)
+        add(kind, name, *map(float, up), *map(float, uq))
+    add("/VMC/Ext/Bone/Pos", "Hips", *([0.0] * 7))  # an address this receiver does not read
+    if frame is not None:
+        add(P.OSC_FRAME, int(frame))
+    return b.build().dgram
+
+
+FACING_Z = np.array([0.0, 0.0, 1.0, 0.0])  # the head device of a wearer facing +Z: his right is -X
+
+
+def test_vmc_decoder_guesses_hands_by_side_then_keeps_them():
+    dec = P.VmcDecoder()
+    head = (np.array([0.0, 1.6, 0.0]), FACING_Z)
+    left = (np.array([0.3, 1.1, 0.2]), np.array([1.0, 0, 0, 0]))  # +X: the wearer's left when facing +Z
+    right = (np.array([-0.3, 1.1, 0.2]), np.array([1.0, 0, 0, 0]))
+    pk = dec.decode(P.osc_messages(_vmc_bundle(head, [right, left])))
+    assert set(pk.poses) == {0, 1, 2} and pk.bad == 0
+    assert np.allclose(pk.poses[1][0], left[0], atol=1e-6) and np.allclose(pk.poses[2][0], right[0], atol=1e-6)
+    assert np.allclose(pk.poses[0][0], head[0], atol=1e-6)
+    # crossed later (a turn): the serials keep their sides
+    pk = dec.decode(P.osc_messages(_vmc_bundle(head, [left, right])))
+    assert np.allclose(pk.poses[2][0], left[0], atol=1e-6)
+    # serials named left / right win over the side
+    dec = P.VmcDecoder()
+    pk = dec.decode(P.osc_messages(_vmc_bundle(head, [right, left], names=("LeftHand", "RightHand"))))
+    assert np.allclose(pk.poses[1][0], right[0], atol=1e-6)
+    # given serials; a tracker is a hand only when named
+    dec = P.VmcDecoder(left="trkL", right="trkR")
+    pk = dec.decode(P.osc_messages(_vmc_bundle(head, [left, right], names=("trkL", "trkR"), kind=P.VMC_TRA)))
+    assert np.allclose(pk.poses[1][0], left[0], atol=1e-6) and np.allclose(pk.poses[2][0], right[0], atol=1e-6)
+    pk = P.VmcDecoder().decode(P.osc_messages(_vmc_bundle(head, [left, right], kind=P.VMC_TRA)))
+    assert set(pk.poses) == {0}
+
+
+def test_osc_layout_round_trip_and_lost_devices(take):
+    pos = take.positions[5].copy()
+    quats = take.quats[5].copy()
+    pos[2] = np.nan
+    for bundle in (True, False):
+        dgrams = P.sample_datagrams("osc", 7, 0.1, pos, quats, {"devices": "joints"}, bundle=bundle)
+        assert len(dgrams) == (1 if bundle else 5)
+        dec = P.OscDecoder()
+        pk = P.Packet()
+        for d in dgrams:
+            one = dec.decode(P.osc_messages(d))
+            pk.poses.update(one.poses)
+            pk.meta.update(one.meta)
+            pk.frame = one.frame if one.frame is not None else pk.frame
+        assert pk.frame == 7 and pk.meta == {"devices": "joints"}
+        assert pk.poses[2] is None
+        for d in (0, 1):
+            assert np.array_equal(pk.poses[d][0], pos[d])  # doubles: exact
+            assert np.allclose(pk.poses[d][1], quats[d], atol=1e-15)
+
+
+# --------------------------------------------------------------------------- samples and counts
+
+def test_assembler_groups_messages_and_counts_every_datagram(take):
+    got = []
+    c = Counters()
+    asm = SampleAssembler(P.OscDecoder(), got.append, c, window=0.002)
+    pos, quats = take.positions[0], take.quats[0]
+    # loose messages of one sample (the sample number first), within the window
+    for i, d in enumerate(P.sample_datagrams("osc", 0, 0.0, pos, quats, bundle=False)):
+        asm.datagram(d, 10.0 + i * 1e-4)
+    assert len(got) == 1 and set(got[0].poses) == {0, 1, 2} and got[0].datagrams == 4
+    # bundles: numbered 1, 2, then 5 (3 and 4 lost), then 4 (late), then 6
+    for n, t in ((1, 10.1), (2, 10.2), (5, 10.3), (4, 10.4), (6, 10.5)):
+        asm.datagram(P.sample_datagrams("osc", n, t, pos, quats)[0], t)
+    asm.datagram(b"garbage", 10.6)
+    asm.datagram(b"/not/ours\x00\x00\x00,i\x00\x00\x00\x00\x00\x01", 10.7)  # well formed, not ours
+    snap = c.snapshot()
+    assert [s.frame for s in got] == [0, 1, 2, 5, 6]
+    assert snap["lost"] == 2 and snap["late"] == 1 and snap["malformed"] == 1 and snap["ignored"] == 1
+    assert snap["datagrams"] == snap["used"] + snap["late"] + snap["malformed"] + snap["ignored"] == 11
+    # VMC without our numbers: the sender's clock going back is late
+    got.clear()
+    asm = SampleAssembler(P.VmcDecoder(), got.append, c)
+    head = (pos[0], quats[0])
+    for clock in (1.0, 1.1, 1.05, 1.2):
+        asm.datagram(_vmc_bundle(head, [], clock=clock), clock)
+    assert np.allclose([s.clock for s in got], [1.0, 1.1, 1.2])  # (float32 on the wire)
+
+
+# --------------------------------------------------------------------------- resampling
+
+def test_causal_resampler_makes_resample_takes_frames(take):
+    """Irregular rows with lost devices: the frames made as rows come are
+    resample_take's, to the bit."""
+    rng = np.random.default_rng(1)
+    n = 400
+    times = np.round(np.cumsum(rng.uniform(0.004, 0.03, n)) - 0.004, 6)
+    times[0] = 0.0
+    idx = np.linspace(0, take.n_frames - 1, n).astype(int)
+    pos, quats = take.positions[idx].copy(), take.quats[idx].copy()
+    pos[50:70, 1] = quats[50:70, 1] = np.nan
+    pos[200:205, 0] = quats[200:205, 0] = np.nan
+    from dancing_points_addon.formats.take import Take
+    off = resample_take(Take(times, pos, quats, {}))
+    rs = CausalResampler()
+    frames = []
+    valid = np.isfinite(pos).all(-1) & np.isfinite(quats).all(-1)
+    for i in range(n):
+        frames += rs.add(times[i], pos[i], quats[i], valid[i])
+    frames += rs.finish(times, pos, quats)
+    assert [f[0] for f in frames] == list(range(off.n_frames))
+    live_p = np.array([f[1] for f in frames])
+    live_q = np.array([f[2] for f in frames])
+    assert np.array_equal(live_p, off.positions, equal_nan=True)
+    assert np.array_equal(live_q, off.quats, equal_nan=True)
+
+
+# --------------------------------------------------------------------------- the live loop
+
+def test_live_loop_equals_synthesize_of_its_take_joints(take, synth):
+    """The sample take streamed at 72 Hz with irregular arrivals, a lost hand
+    (omitted: held for 0.1 s, then lost), packets missing, and silence at
+    the end: the loop's duet is synthesize's of the take it records."""
+    t, pos, quats = stream_rows(take, 72.0)
+    n = 72 * 5
+    pos, quats = pos[:n].copy(), quats[:n].copy()
+    pos[150:190, 2] = np.nan
+    jitter = np.random.default_rng(2).uniform(0, 0.004, n)
+    s = LiveSession(LiveOptions(source="osc", models=MODELS), Synthesizer(SynthesisOptions(models=MODELS),
+                                                                          nets=synth.nets))
+    _feed(s, t[:n] + jitter, pos, quats, skip=set(range(40, n, 20)))
+    s.tick(100.0 + t[n - 1] + 0.5)  # silence: rows of lost devices, dropped again at the end
+    res = s.finish()
+    assert res.take.meta["devices"] == "joints" and res.take.meta["role"] == "leader"
+    assert float(res.take.meta["height_m"]) == pytest.approx(1.67, abs=0.1)
+    off, tk = _offline(synth, res.take)
+    assert np.array_equal(tk.quats, as_read(res.take.quats), equal_nan=True)  # the loop's rows are the file's
+    lost = ~tk.valid
+    assert lost[:, 2].sum() > 20 and not lost[:, :2].any()
+    assert res.duet.n_frames == off.n_frames
+    d = _max_diff(res.duet, off)
+    print("live vs synthesize (joints, 72 Hz, gaps):", d)
+    assert max(d.values()) <= TOL
+
+
+def test_live_loop_equals_synthesize_of_its_take_openxr(take, synth):
+    """A headset's take (devices=openxr, own body offsets given), the floor
+    4 cm off, the height given (the floor then estimated from the first
+    second); the start lost (the take starts where all three are seen)."""
+    hx = headset_take(take, height=1.8)
+    hx.positions[..., 1] += 0.04
+    t, pos, quats = stream_rows(hx, 90.0)
+    n = 90 * 4
+    pos, quats = pos[:n].copy(), quats[:n].copy()
+    pos[:9, 1] = np.nan  # the left hand is seen only from the 10th sample
+    opts = LiveOptions(source="xr", height=1.8, hand_offset=(-0.02, 0.07, 0.01), models=MODELS)
+    s = LiveSession(opts, Synthesizer(opts.synthesis_options(), nets=synth.nets))
+    _feed(s, t[:n], pos, quats)
+    res = s.finish()
+    meta = res.take.meta
+    assert meta["devices"] == "openxr" and meta["height_m"] == "1.8000"
+    assert meta["lhand_offset_m"] == "-0.02,0.07,0.01" and meta["rhand_offset_m"] == "0.02,0.07,0.01"
+    assert res.take.time[0] == 0.0 and np.isfinite(res.take.positions[0]).all()
+    assert res.take.n_frames == n - 9
+    off, _ = _offline(synth, res.take)
+    d = _max_diff(res.duet, off)
+    print("live vs synthesize (openxr, offsets, floor estimated):", d)
+    assert max(d.values()) <= TOL
+
+
+def test_stream_metadata_starts_the_duet_at_once(take, synth):
+    """Height and floor from the stream's metadata: no calibration wait, and the take says them."""
+    t, pos, quats = stream_rows(take, 60.0)
+    s = LiveSession(LiveOptions(source="vmc", models=MODELS), Synthesizer(SynthesisOptions(models=MODELS),
+                                                                          nets=synth.nets))
+    s.feed(Sample(5.0, {}, meta={"height_m": "1.75", "floor_y": "0.02", "devices": "joints", "junk": "x"}))
+    _feed(s, t[:20], pos, quats)
+    assert s.calibration is not None and s.calibration.height == 1.75 and len(s._frames["lp"]) > 5
+    res = s.finish()
+    assert (res.take.meta["height_m"], res.take.meta["floor_y"], res.take.meta["devices"]) == \
+        ("1.7500", "0.0200", "joints")
+    off, _ = _offline(synth, res.take)
+    assert max(_max_diff(res.duet, off).values()) <= TOL
+
+
+def test_late_samples_and_nothing_recorded(synth):
+    s = LiveSession(LiveOptions(source="osc", models=MODELS), synth)
+    with pytest.raises(Exception, match="nothing recorded"):
+        s.finish()
+    s = LiveSession(LiveOptions(source="osc", models=MODELS), Synthesizer(SynthesisOptions(models=MODELS),
+                                                                          nets=synth.nets))
+    pose = {d: (np.array([0.0, 1.5 if d == 0 else 1.0, 0.2 * d]), FACING_Z) for d in range(3)}
+    s.feed(Sample(1.0, pose, datagrams=1))
+    s.counters.add(used=1)
+    s.feed(Sample(0.99, pose, datagrams=1))  # before the last row: late
+    assert s.counters.late == 1 and s.counters.used == 0 and s.rows.n == 1
+
+
+def test_xr_conversion_round_trip(take):
+    hx = headset_take(take)
+    loc, rot = motion_to_xr(hx.positions[10], hx.quats[10])
+    # Blender world: Z up
+    assert loc[0, 2] == pytest.approx(hx.positions[10, 0, 1])
+    p, q = xr_to_motion(loc, rot)
+    assert np.allclose(p, hx.positions[10]) and np.allclose(np.abs((q * hx.quats[10]).sum(-1)), 1.0)
+
+
+# --------------------------------------------------------------------------- fuzz
+
+def _malformed(rng, good: bytes) -> bytes:
+    """One malformed or unexpected datagram of many kinds."""
+    from pythonosc.osc_message_builder import OscMessageBuilder
+
+    kind = rng.randrange(9)
+    if kind == 0:  # truncated
+        return good[:rng.randrange(1, len(good))]
+    if kind == 1:  # random bytes, sometimes looking like OSC
+        head = rng.choice([b"", b"/", b"#bundle\x00", b"/VMC/Ext/Hmd/Pos\x00\x00\x00\x00"])
+        return head + bytes(rng.randrange(256) for _ in range(rng.randrange(0, 80)))
+    if kind == 2:  # a bundle whose element size lies
+        return b"#bundle\x00" + b"\x00" * 8 + struct.pack(">i", rng.choice([-4, 4096, 3])) + good[16:40]
+    addr = rng.choice([P.VMC_HMD, P.VMC_CON, P.VMC_TRA, P.VMC_TIME, "/dancing_points/head", P.OSC_FRAME,
+                       P.OSC_META, "/VMC/Ext/Blend/Val", "/unknown/address"])
+    m = OscMessageBuilder(address=addr)
+    if kind == 3:  # wrong count
+        for _ in range(rng.randrange(0, 12)):
+            m.add_arg(rng.random())
+    elif kind == 4:  # wrong types
+        for _ in range(8):
+            m.add_arg(rng.choice(["s", 3, True, b"blob", 1.5]))
+    elif kind == 5:  # NaN and infinities
+        m.add_arg("serial")
+        for _ in range(7):
+            m.add_arg(rng.choice([float("nan"), float("inf"), -float("inf"), 0.5]), "f")
+    elif kind == 6:  # huge values, zero quaternions
+        m.add_arg("serial")
+        for _ in range(7):
+            m.add_arg(rng.choice([1e30, -1e30, 0.0, 3.4e38, 1e300]), "d")
+    elif kind == 7:  # an unknown address with a pose
+        m = OscMessageBuilder(address="/VMC/Ext/Hmd/Pos/Local")
+        m.add_arg("serial")
+        for _ in range(7):
+            m.add_arg(0.5)
+    else:  # an array and odd type tags
+        m.add_arg([1.0, 2.0, [3.0]])
+    return m.build().dgram
+
+
+def test_bundle_with_a_negative_element_size_is_malformed_not_a_stall():
+    """python-osc 1.10.2 loops for ever on a bundle element of size -4; the
+    framing is checked first."""
+    for size in (-4, -8, 1 << 20):
+        d = b"#bundle\x00" + b"\x00" * 8 + struct.pack(">i", size) + b"/a\x00\x00"
+        t0 = time.perf_counter()
+        with pytest.raises(P.MalformedPacket):
+            P.osc_messages(d)
+        assert time.perf_counter() - t0 < 0.5
+    nested = b"/a\x00\x00"
+    for _ in range(40):  # bundles nested 40 deep
+        nested = b"#bundle\x00" + b"\x00" * 8 + struct.pack(">i", len(nested)) + nested
+    with pytest.raises(P.MalformedPacket):
+        P.osc_messages(nested)
+
+
+def test_fuzz_malformed_packets_are_counted_and_skipped(take):
+    """3,000 malformed packets of every kind between good ones, straight into
+    the assembler (no network): each is counted once, the good samples all
+    come through, nothing raises."""
+    rng = random.Random(36)
+    for fmt in ("vmc", "osc"):
+        got = []
+        c = Counters()
+        asm = SampleAssembler(P.decoder_for(fmt), got.append, c)
+        good = [P.sample_datagrams(fmt, i, i / 60, take.positions[i], take.quats[i])[0] for i in range(60)]
+        t = 0.0
+        for i in range(3000):
+            t += 0.001
+            if i % 50 == 0:
+                asm.datagram(good[i // 50], t)
+            asm.datagram(_malformed(rng, good[0]), t)
+        asm.flush()
+        snap = c.snapshot()
+        print(fmt, snap)
+        # every good sample came through, in order (a fuzzed packet may happen to be a valid pose)
+        assert [s.frame for s in got if s.frame is not None] == list(range(60))
+        assert snap["datagrams"] == 3060 == snap["used"] + snap["late"] + snap["malformed"] + snap["ignored"]
+        assert snap["malformed"] + snap["ignored"] >= 2900
+
+
+def test_fuzz_over_udp_never_crashes_or_stalls(take):
+    """The same over a real socket on 127.0.0.1: the receiver thread survives
+    2,000 malformed packets, every datagram is accounted for, and a good
+    sample sent after them arrives at once."""
+    got = []
+    c = Counters()
+    rx = UdpReceiver(SampleAssembler(P.VmcDecoder(), got.append, c), 0, "127.0.0.1")
+    rx.start()
+    rng = random.Random(7)
+    good = P.sample_datagrams("vmc", 0, 0.0, take.positions[0], take.quats[0])[0]
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sent = 0
+        for i in range(2000):
+            tx.sendto(_malformed(rng, good), ("127.0.0.1", rx.port))
+            sent += 1
+            if i % 200 == 199:
+                time.sleep(0.01)  # (the kernel's buffer: no loss on the loopback)
+        t0 = time.perf_counter()
+        tx.sendto(P.sample_datagrams("vmc", 1, 1.0, take.positions[1], take.quats[1])[0], ("127.0.0.1", rx.port))
+        sent += 1
+        while not got and time.perf_counter() - t0 < 5.0:
+            time.sleep(0.005)
+        assert got and got[-1].frame == 1 and rx.alive and rx.error is None
+        print(f"good sample after the fuzz arrived in {1000 * (time.perf_counter() - t0):.1f} ms")
+        deadline = time.perf_counter() + 5.0
+        while c.datagrams < sent and time.perf_counter() < deadline:
+            time.sleep(0.01)
+        snap = c.snapshot()
+        print(snap)
+        assert snap["datagrams"] == sent == snap["used"] + snap["late"] + snap["malformed"] + snap["ignored"]
+    finally:
+        tx.close()
+        rx.stop()
+
+
+# --------------------------------------------------------------------------- start, stop, the port
+
+def _live_threads():
+    return [t.name for t in threading.enumerate() if t.name.startswith("dancing_points_live")]
+
+
+def test_receiver_stops_cleanly_and_a_taken_port_is_one_clear_error():
+    rx = UdpReceiver(SampleAssembler(P.VmcDecoder(), lambda s: None), 0, "127.0.0.1")
+    rx.start()
+    port = rx.port
+    assert _live_threads()
+    other = UdpReceiver(SampleAssembler(P.VmcDecoder(), lambda s: None), port, "127.0.0.1")
+    with pytest.raises(PortInUse, match=f"UDP port {port} is already in use"):
+        other.start()
+    assert other.sock is None and other.thread is None
+    rx.stop()
+    assert not _live_threads()
+    again = UdpReceiver(SampleAssembler(P.VmcDecoder(), lambda s: None), port, "127.0.0.1")
+    again.start()  # the port is free again: the socket was closed
+    again.stop()
+    assert not _live_threads()
+
+
+def test_live_command_port_in_use(tmp_path):
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    try:
+        r = subprocess.run([sys.executable, "-m", "dancing_points_addon", "live", "--bind", "127.0.0.1", "--port",
+                            str(s.getsockname()[1]), "-o", str(tmp_path / "out.npz")], cwd=ROOT, env=_env(),
+                           capture_output=True, text=True, timeout=120)
+    finally:
+        s.close()
+    assert r.returncode == 2
+    assert r.stderr.count("\n") == 1 and "is already in use" in r.stderr and "Traceback" not in r.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_stream_sends_in_real_time_and_drops_on_purpose(take):
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(0.5)
+    got = []
+
+    def recv():
+        try:
+            while True:
+                got.append((time.perf_counter(), rx.recv(65536)))
+        except OSError:
+            pass
+
+    th = threading.Thread(target=recv)
+    th.start()
+    try:
+        res = stream_take(take, rx.getsockname()[1], fmt="osc", rate=50.0, duration=1.0, drop=0.1, seed=3)
+    finally:
+        th.join()
+        rx.close()
+    assert res["samples"] == 51 and res["sent"] + res["dropped"] == 51 and 1 <= res["dropped"] <= 15
+    assert len(got) == res["sent"]
+    span = got[-1][0] - got[0][0]
+    assert 0.8 < span < 1.3, span
+
+
+# --------------------------------------------------------------------------- two processes
+
+_RECEIVED = re.compile(r"received (\d+) packets: used (\d+), late (\d+), malformed (\d+), ignored (\d+); "
+                       r"lost on the way (\d+) samples")
+_SENT = re.compile(r"sent (\d+) packets \((\d+) samples, (\d+) dropped on purpose\)")
+_LATENCY = re.compile(r"median ([\d.]+) ms, 99th percentile ([\d.]+) ms; after the calibration's catch-up: "
+                      r"median ([\d.]+) ms, 99th percentile ([\d.]+) ms")
+
+
+@pytest.mark.parametrize("fmt,drop,extra", [("vmc", 0.0, ()), ("osc", 0.0, ("--messages",)),
+                                            ("vmc", 0.05, ()), ("osc", 0.05, ())])
+def test_stream_and_live_processes(tmp_path, fmt, drop, extra):
+    """``stream`` (the sample take at 72 Hz for 10 s) and ``live`` as separate
+    processes on 127.0.0.1: every packet sent is received and accounted for,
+    the deliberately dropped ones are the numbered samples found lost, and the
+    duet ``live`` wrote is ``synthesize``'s of the take it wrote."""
+    port_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    port_sock.bind(("127.0.0.1", 0))
+    port = port_sock.getsockname()[1]
+    port_sock.close()
+    out = tmp_path / "live.npz"
+    live = subprocess.Popen([sys.executable, "-m", "dancing_points_addon", "live", "--bind", "127.0.0.1",
+                             "--port", str(port), "--format", fmt, "-o", str(out)], cwd=ROOT, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 120
+        line = ""
+        while "listening" not in line and time.time() < deadline:
+            line = live.stdout.readline()
+            assert line or live.poll() is None, live.stderr.read()
+        sender = subprocess.run([sys.executable, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--port",
+                                 str(port), "--format", fmt, "--rate", "72", "--duration", "10", "--drop", str(drop),
+                                 *extra], cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=60)
+        assert sender.returncode == 0, sender.stderr
+        time.sleep(1.0)
+        live.send_signal(signal.SIGINT)
+        stdout, stderr = live.communicate(timeout=120)
+    finally:
+        if live.poll() is None:
+            live.kill()
+    assert live.returncode == 0, stderr
+    sent, samples, dropped = map(int, _SENT.search(sender.stdout).groups())
+    received, used, late, malformed, ignored, lost = map(int, _RECEIVED.search(stdout).groups())
+    med, p99, smed, sp99 = map(float, _LATENCY.search(stdout).groups())
+    per = 4 if "--messages" in extra else 1  # datagrams a sample
+    print(f"\n{fmt} drop {drop}: sent {sent} ({samples} samples, {dropped} dropped on purpose), received "
+          f"{received} (used {used}, late {late}, malformed {malformed}, ignored {ignored}), lost {lost}; "
+          f"latency median {med} ms, p99 {p99} ms (caught up: median {smed} ms, p99 {sp99} ms)")
+    assert received == sent == used + late + malformed + ignored  # every datagram sent arrived, counted once
+    assert late == malformed == ignored == 0
+    if per == 1:  # one datagram a sample: the ones left out are the numbered samples found missing
+        assert received + dropped == samples
+        assert 0 <= dropped - lost <= 3  # (dropped samples after the last one received cannot be seen)
+    if drop:
+        assert lost >= 10
+    # the duet is synthesize's of the recorded take
+    csv = out.with_suffix(".csv")
+    tk = read_take(csv)
+    assert tk.meta["devices"] == "joints" and tk.meta["role"] == "leader"
+    assert 9.0 < tk.time[-1] < 11.5
+    off = tmp_path / "offline.npz"
+    r = subprocess.run([sys.executable, "-m", "dancing_points_addon", "synthesize", str(csv), "-o", str(off)],
+                       cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    a, b = np.load(out), np.load(off)
+    assert a["leader_positions"].shape == b["leader_positions"].shape
+    worst = max(float(np.max(np.abs(a[k] - b[k]))) for k in SPEC_KEYS)
+    print(f"live duet vs synthesize of its take: {a['leader_positions'].shape[0]} frames, max difference {worst:g}")
+    assert worst <= TOL
+
+
+def test_live_duration_ends_the_take(tmp_path):
+    port_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    port_sock.bind(("127.0.0.1", 0))
+    port = port_sock.getsockname()[1]
+    port_sock.close()
+    out = tmp_path / "d.npz"
+    live = subprocess.Popen([sys.executable, "-m", "dancing_points_addon", "live", "--bind", "127.0.0.1",
+                             "--port", str(port), "--format", "osc", "--duration", "2", "--height", "1.7",
+                             "-o", str(out)], cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        line = ""
+        while "listening" not in line:
+            line = live.stdout.readline()
+            assert line or live.poll() is None, live.stderr.read()
+        sender = subprocess.run([sys.executable, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--port",
+                                 str(port), "--format", "osc", "--loop", "--duration", "4"], cwd=ROOT, env=_env(),
+                                capture_output=True, text=True, timeout=60)
+        assert sender.returncode == 0
+        stdout, stderr = live.communicate(timeout=120)
+    finally:
+        if live.poll() is None:
+            live.kill()
+    assert live.returncode == 0, stderr
+    tk = read_take(out.with_suffix(".csv"))
+    assert float(tk.meta["height_m"]) == 1.7
+    assert 1.9 <= tk.time[-1] <= 2.2
+    assert np.load(out)["leader_positions"].shape[0] == int(np.floor(tk.time[-1] * 30 + 1e-6)) + 1
