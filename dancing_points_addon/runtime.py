@@ -566,7 +566,7 @@ class Synthesizer:
         if c is not None and c.floor_y:
             a.positions[:, 1] += c.floor_y
             b.positions[:, 1] += c.floor_y
-        return a, b
+        return (b, a) if self.role == "follower" else (a, b)
 
     def _frame(self, positions, quats, valid):
         """:meth:`step` on §2 points above a floor at y = 0."""

@@ -16,4 +16,4 @@ is read or written.
 
 VMC_PORT = 39539  # the VMC protocol's usual receiver (performer) port
 OSC_PORT = 39540  # the default of this project's own OSC layout
-ROLES = ("leader",)  # whose points a live stream may carry: the runtime synthesises from the leader's
+ROLES = ("leader", "follower")  # whose points a live stream may carry (SPEC §3 role)

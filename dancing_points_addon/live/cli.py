@@ -204,7 +204,8 @@ def parser_live(sub) -> None:
     p.add_argument("--bind", default="0.0.0.0", metavar="ADDR",
                    help="the address to receive on (default 0.0.0.0: every network; 127.0.0.1: this machine only)")
     p.add_argument("--format", choices=("vmc", "osc"), default="vmc", help="the layout (default vmc)")
-    p.add_argument("--role", choices=ROLES, default="leader", help="whose points the stream carries (leader)")
+    p.add_argument("--role", choices=ROLES, default="leader", help="whose points the stream carries: the leader's (default) or the follower's (the leader is "
+                        "synthesised)")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="end the take S seconds after the dancer is first seen (default: at Ctrl-C)")
     p.add_argument("--height", type=height_metres, default=None, metavar="H",

@@ -88,7 +88,7 @@ class LiveOptions:
         return SynthesisOptions(models=self.models, threads=self.threads, height=self.height,
                                 foot_lock=self.foot_lock, hand_ik=self.hand_ik, floor_y=self.floor_y,
                                 devices=self.devices, head_offset=self.head_offset, hand_offset=self.hand_offset,
-                                follow_devices=self.follow_devices)
+                                follow_devices=self.follow_devices, role=self.role)
 
 
 def as_written(positions, quats):
