@@ -120,7 +120,9 @@ def test_npz(takes, converted):
         with np.load(out / (base + ".npz")) as z:
             assert set(z.files) == {"fps", "time", "joint_names", "leader_positions", "follower_positions",
                                     "leader_rotations", "follower_rotations", "leader_contacts",
-                                    "follower_contacts"}
+                                    "follower_contacts", "tracked_role", "height_m", "height_source", "floor_y",
+                                    "floor_source", "devices"}
+            assert str(z["tracked_role"]) == "leader" and str(z["height_source"]) == "estimated"
             T = files[rel]["frames"]
             assert float(z["fps"]) == 30.0 and z["fps"].shape == ()
             assert np.allclose(z["time"], z["time"][0] + np.arange(T) / 30.0)

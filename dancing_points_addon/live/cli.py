@@ -14,7 +14,7 @@ import time
 from ..argtypes import (EXIT_OK, add_calibration_arguments, calibration_options, height_metres, positive_float,
                         printable, thread_count)
 from ..errors import InputError, UserError
-from . import OSC_PORT, ROLES, VMC_PORT
+from . import OSC_PORT, VMC_PORT
 
 STATUS_EVERY_S = 0.5  # on a terminal the status line is redrawn this often
 STATUS_LOG_EVERY_S = 5.0  # elsewhere a status line is printed this often
@@ -123,11 +123,12 @@ def cmd_live(args) -> int:
     from .session import LiveOptions, LiveSession
 
     out, csv = _outputs(args.output)
-    check_models(args.models, args.threads)
+    check_models(args.models, args.threads, args.role or "leader")
     port = args.port or _default_port(args.format)
     cal = calibration_options(args)
     options = LiveOptions(source=args.format, height=args.height, floor_y=cal["floor_y"], devices=cal["devices"],
-                          head_offset=cal["head_offset"], hand_offset=cal["hand_offset"], role=args.role,
+                          head_offset=cal["head_offset"], hand_offset=cal["hand_offset"],
+                          role=args.role or "leader",
                           models=args.models, threads=args.threads, follow_devices=cal["follow_devices"])
     counters = Counters()
     sink = []  # the session, once its networks are loaded (the port is taken first: a clear error at once)
@@ -204,8 +205,6 @@ def parser_live(sub) -> None:
     p.add_argument("--bind", default="0.0.0.0", metavar="ADDR",
                    help="the address to receive on (default 0.0.0.0: every network; 127.0.0.1: this machine only)")
     p.add_argument("--format", choices=("vmc", "osc"), default="vmc", help="the layout (default vmc)")
-    p.add_argument("--role", choices=ROLES, default="leader", help="whose points the stream carries: the leader's (default) or the follower's (the leader is "
-                        "synthesised)")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="end the take S seconds after the dancer is first seen (default: at Ctrl-C)")
     p.add_argument("--height", type=height_metres, default=None, metavar="H",
