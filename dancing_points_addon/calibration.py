@@ -31,6 +31,7 @@ from .formats.devices import (DEVICE_KINDS, DeviceOffsets, check_devices, offset
                               points_to_openxr)
 from .formats.take import Take
 from .representation import root_from_head, to_local, to_world
+from .resample import NET_FPS, resample_plan, tracked_after_resampling
 from .rotations import matrix_to_quat, quat_to_matrix
 
 # The training leader: his nominal standing height, and the 90th percentile of
@@ -112,6 +113,21 @@ def check_role(value, path="<take>", line=None) -> str:
     return v
 
 
+def head_heights(take: Take, devices: str, offsets: DeviceOffsets, height) -> np.ndarray:
+    """The heights of the base of the skull at the networks' 30 Hz frames where
+    the head is tracked: converted on the take's own rows, then interpolated, so
+    a take and its copy at another rate (a 60 Hz file and the 30 fps keys
+    Blender imports it to) estimate the same height and floor."""
+    y = head_points(take, devices, offsets, height)[:, 1]
+    ok = np.isfinite(y) & np.isfinite(take.quats[:, 0]).all(-1)
+    if len(y) < 2:
+        return y[ok]
+    _, i, a = resample_plan(take.time, NET_FPS)
+    keep = tracked_after_resampling(ok[:, None], i, a)[:, 0]
+    y0 = np.where(ok, y, 0.0)
+    return (y0[i] + (y0[i + 1] - y0[i]) * a)[keep]
+
+
 def calibrate(take: Take, height=None, floor_y=None, devices=None, offsets: DeviceOffsets | None = None,
               head_offset=None, hand_offset=None, role=None) -> Calibration:
     """The calibration of ``take``: each of ``devices``, ``height``, ``floor_y``
@@ -130,13 +146,13 @@ def calibrate(take: Take, height=None, floor_y=None, devices=None, offsets: Devi
         height = None
     given_h = float(height) if height is not None else take.height
     given_f = float(floor_y) if floor_y is not None else _meta_float(meta, "floor_y", path)
-    valid = np.isfinite(take.positions[:, 0]).all(-1) & np.isfinite(take.quats[:, 0]).all(-1)
+    seen = head_heights(take, devices, offsets, TRAIN_HEIGHT).size > 0  # the head on a 30 Hz frame
     if given_h is not None:
         h_src, h = "given", given_h
         if given_f is not None:
             f_src, f = "given", given_f
-        elif valid.any():
-            f_src, f = "estimated", floor_from_head(head_points(take, devices, offsets, h)[valid, 1], h)
+        elif seen:
+            f_src, f = "estimated", floor_from_head(head_heights(take, devices, offsets, h), h)
             if abs(f) > FLOOR_RANGE_M:
                 raise InputError(path, f"with a height of {h:.2f} m the floor would lie at y = {f:+.2f} m: "
                                        f"check the height, or give floor_y")
@@ -144,12 +160,14 @@ def calibrate(take: Take, height=None, floor_y=None, devices=None, offsets: Devi
             f_src, f = "assumed", 0.0
         return Calibration(devices, h, h_src, f, f_src, offsets, role)
     f_src, f = ("given", given_f) if given_f is not None else ("assumed", 0.0)
-    if not valid.any():
+    if not seen:
         return Calibration(devices, TRAIN_HEIGHT, "assumed", f, f_src, offsets, role)
     h = TRAIN_HEIGHT
     # openxr: the skull base depends on the offsets, which scale with the height: a fixed point
-    for _ in range(1 if devices == "joints" else 4):
-        h = height_from_head(head_points(take, devices, offsets, h)[valid, 1] - f)
+    for _ in range(1 if devices == "joints" else 20):
+        h, h0 = height_from_head(head_heights(take, devices, offsets, h) - f), h
+        if abs(h - h0) < 1e-9:
+            break
     return Calibration(devices, h, "estimated", f, f_src, offsets, role)
 
 
@@ -217,8 +235,7 @@ def headset_take(take: Take, hand_rotations=None, height=None, offsets: DeviceOf
     given = height if height is not None else take.height
     h = given
     if h is None:
-        valid = np.isfinite(take.positions[:, 0]).all(-1)
-        h = height_from_head(take.positions[valid, 0, 1]) if valid.any() else TRAIN_HEIGHT
+        h = calibrate(take, devices="joints").height
     if hand_rotations is None:
         hand_rotations = quat_to_matrix(np.nan_to_num(take.quats[:, 1:]))
     poses, quats = points_to_openxr(take.positions, take.quats[:, 0], hand_rotations, offsets.at(h))

@@ -227,7 +227,7 @@ def _parser_batch(sub) -> None:
     from .batch import add_arguments
 
     p = sub.add_parser("batch", help="many takes (files or folders) -> one duet each, in parallel",
-                       description="Convert every take (.csv, .bvh, .amc; folders are searched "
+                       description="Convert every take (.csv, .bvh, .amc, .fbx; folders are searched "
                                    "recursively) to a baked duet, one output per take named after it, "
                                    "on --jobs worker processes, with a result line per file as it "
                                    "finishes (the report lists them in input order). A bad file is "

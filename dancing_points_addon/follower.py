@@ -78,7 +78,7 @@ class FollowerOptions:
     # before her foot lock; her tracker's state is fed back from there, each leg bone's twist kept
     # within the skeleton's (``pose.LegJoints``), and her output's hip joints turn with her pelvis.
     # 0.3 (chosen on val) halves her change under 1 mm of tracker noise and plants her feet more
-    # (models/README.md, "Her legs, anchored, by default"; 0: off)
+    # (models/README.md, "Pose anchor"; 0: off)
     anchor: float = 0.3
     # degrees a frame: her upper arms and forearms turn at most this much relative to her chest
     # (``ik.ArmTurnLimit``; the fastest real arm in the salsa train frames: 30). A hand hold whose
@@ -96,9 +96,8 @@ class FollowerOptions:
     # where her hips are turned towards: "net", the hip-heading network's (``nets["hip"]``,
     # ``hip_heading.onnx``: her hip heading relative to his root from his past 0.5 s, over
     # ``HIP_BINS`` bins; its circular mean), or "mapping", the predicted heading of her root
-    # (session 13; the placement network's with ``placement_source="net"``). Chosen on val (four
-    # mapping seeds): heading 50.2 -> 46.1 degrees, her full-body error, hands and holds as they
-    # were (models/README.md, "Her hips from a hip-heading network")
+    # (the placement network's with ``placement_source="net"``). Chosen on val (four mapping
+    # seeds): heading 50.2 -> 46.1 degrees, her full-body error, hands and holds as they were
     hip_source: str = "net"
     # where her placement steers to: "net", the placement network's predicted roots of her
     # (``nets["placement"]``, ``placement.onnx``: the mapping's network and recipe, trained also on
@@ -106,9 +105,8 @@ class FollowerOptions:
     # outputs): her predicted roots (position and heading) from it, spliced into the mapping's
     # output, so her placement, her tracker's keys and her predicted wrists (holds) are placed by
     # them, her predicted points in her root frame and his duet the mapping's; or "mapping", the
-    # mapping's roots (sessions 1-15). Chosen on val (four seed pairs): her full-body error
-    # 34.50 -> 32.40 cm, heading 46.0 -> 45.9, hand 11.58 -> 10.00 (models/README.md, "Her placement
-    # from a placement network")
+    # mapping's roots. Chosen on val (four seed pairs): her full-body error 34.50 -> 32.40 cm,
+    # heading 46.0 -> 45.9, hand 11.58 -> 10.00
     placement_source: str = "net"
     # degrees: in her output (after her foot lock), each thigh's twist about itself against her pelvis
     # within this, and the bones below it within her state's limits (``pose.LegJoints.twist``,
@@ -136,13 +134,14 @@ class FollowerOptions:
     hold_lead_smooth: float = 0.7
     hold_soft_rate: float = 0.04  # the soft partner's weights change by at most this much a frame (0: free)
     hold_arm_ik: str = "swing"  # her arm IK under a hold (``ik.EndEffectorIK``'s ``arm``): "swing" or "pole"
-    hold_reach: float = 1.2  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
-    # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward). 1.2 chosen
-    # on val with the norm-loss mapping (four seeds: hand 12.22 -> 11.58 cm against 1.1)
+    hold_reach: float = 1.6  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
+    # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward). Chosen
+    # on val with the device-offset mapping family: hand 11.87 / 11.43 / 11.04 /
+    # 10.71 / 10.51 / 10.51 cm at 1.2 / 1.3 / 1.4 / 1.5 / 1.6 / 2.0, jitter 188 -> 174 m/s³ at 1.6
     hold_near: float = 0.35  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1;
     # his hand at her shoulder is his hand on her back, not a hold; 0: never)
-    # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md, "Her steps,
-    # timed by a contact network"): with ``lock_contacts`` "net" her foot points plant and lift
+    # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md, "Steps"):
+    # with ``lock_contacts`` "net" her foot points plant and lift
     # as the contact network says (hysteresis ``lock_on`` / ``lock_off`` on its probabilities),
     # on her floor (its floor levels, from the train split); "tracker": her tracker's own
     # contact output and the kinematic evidence, on the lowest each foot point has been lately.

@@ -617,6 +617,7 @@ def _ui_operator():
         take = ""
         foot_lock = True
         hand_ik = False
+        follow_devices = True
         model_dir = MODELS
 
         def __init__(self):

@@ -14,6 +14,7 @@ from dancing_points_addon.formats.devices import DeviceOffsets, openxr_to_points
 from dancing_points_addon.formats.inputs import HAND_BONES, load_headset_input, load_input
 from dancing_points_addon.formats.take import Take, read_take, write_take
 from dancing_points_addon.representation import DEVICE_FROM_HEAD
+from dancing_points_addon.resample import resample_take
 from dancing_points_addon.rotations import quat_to_matrix
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import FEET, JOINT_INDEX, TRACKED
@@ -75,8 +76,10 @@ def test_headset_take_gives_the_joint_takes_duet(synth, take08, headset08):
     a = synth.synthesize(take08[0])
     b = synth.synthesize(headset08)
     assert b.calibration.devices == "openxr"
-    assert np.abs(a.follower_positions - b.follower_positions).max() < 1e-5
-    assert np.abs(a.leader_positions[:, BODY] - b.leader_positions[:, BODY]).max() < 1e-5
+    # identical up to rounding: the points come back through the device offsets to ~1e-13 m,
+    # which the closed loop carries on to at most hundredths of a millimetre
+    assert np.abs(a.follower_positions - b.follower_positions).max() < 1e-4
+    assert np.abs(a.leader_positions[:, BODY] - b.leader_positions[:, BODY]).max() < 1e-4
     d = np.linalg.norm(a.leader_positions - b.leader_positions, axis=-1)[:, ARMS]
     print(f"\nhis arms, joints against headset take: {d.mean() * 100:.2f} cm mean, {d.max() * 100:.1f} cm max")
     assert d.mean() < 0.05
@@ -232,7 +235,8 @@ def test_extract_devices_openxr_and_synthesize_devices_cli(tmp_path):
     assert "estimated" in res.stdout and "devices openxr" in res.stdout
     z = np.load(tmp_path / "d.npz")
     assert str(z["devices"]) == "openxr" and str(z["height_source"]) == "estimated"
-    assert abs(float(z["height_m"]) - height_from_head(joints.positions[:, 0, 1])) < 1e-6
+    # estimated from the head at the networks' 30 Hz frames (as Blender's 30 fps keys of the take would)
+    assert abs(float(z["height_m"]) - height_from_head(resample_take(joints, 30.0).positions[:, 0, 1])) < 1e-6
     res = run_cli("synthesize", str(out), "-o", str(tmp_path / "e.npz"), "--devices", "joints", "--height", "1.7",
                   "--floor-y", "0.02")
     assert res.returncode == 0, res.stderr

@@ -210,7 +210,7 @@ class PoseAnchorNet(MappingNet):
     in her own hip frame (``representation.hip_frame``), ``(B, 30)``. An MLP
     trained on the squared error. It knows nothing of her previous frames: the
     runtime pulls her tracker's closed-loop legs a share of the way to it each
-    frame (``FollowerOptions.anchor``; models/README.md, "Her legs, anchored")."""
+    frame (``FollowerOptions.anchor``; models/README.md, "Pose anchor")."""
 
     def __init__(self, n_in, n_out=3 * len(LOWER_BODY), hidden=512, layers=3, noise=0.05, dropout=0.2):
         super().__init__(n_in, n_out, hidden, layers, noise, dropout)

@@ -1,7 +1,7 @@
 """Experiment (issue 13): her placement and heading read from classifiers over
 bins instead of the mapping network's regression. Not shipped: on val it
 traded her placement error for jitter, hand error and noise
-(models/README.md, "Placement and heading by classification").
+(docs/experiments.md, "Her placement").
 
     python -m training.placement_classifier --data ../shared/data/cmu_salsa \
         --models .gpu/fit_c

@@ -1,7 +1,7 @@
 """Experiment (issue 13): a small *placement network* that sees its own previous
 placement, against the shipped rule (the mapping's prediction steered into a
 placement state, ``dancing_points_addon/follower.py``). Not shipped: it lost on
-val (models/README.md, "The follower's state at run time").
+val (docs/experiments.md, "Her placement").
 
     python -m training.placement_net --data ../shared/data/cmu_salsa \
         --models .gpu/fit_models [--noise 0.15] [--ema 0.9]

@@ -158,7 +158,7 @@ def main(argv=None):
                     help="with --placement-state: noisy copies of the samples (its epochs divided by as many)")
     ap.add_argument("--placement-timewarp", default=None,
                     help="the placement network: also on the clips replayed at these speeds, each also played "
-                         "backwards, e.g. 0.9,1.1 (measured in session 16, not shipped: models/README.md)")
+                         "backwards, e.g. 0.9,1.1 (measured, not shipped: docs/experiments.md)")
     ap.add_argument("--map-timewarp", default=None,
                     help="mapping: also train on the clips replayed at these speeds, e.g. 0.9,1.1")
     ap.add_argument("--paper-decoder", action="store_true",
