@@ -134,10 +134,11 @@ class FollowerOptions:
     hold_lead_smooth: float = 0.7
     hold_soft_rate: float = 0.04  # the soft partner's weights change by at most this much a frame (0: free)
     hold_arm_ik: str = "swing"  # her arm IK under a hold (``ik.EndEffectorIK``'s ``arm``): "swing" or "pole"
-    hold_reach: float = 1.6  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
+    hold_reach: float = 1.4  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
     # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward). Chosen
-    # on val with the device-offset mapping family: hand 11.87 / 11.43 / 11.04 /
-    # 10.71 / 10.51 / 10.51 cm at 1.2 / 1.3 / 1.4 / 1.5 / 1.6 / 2.0, jitter 188 -> 174 m/s³ at 1.6
+    # on val with the device-offset mapping family: hand 11.87 / 11.43 / 11.04 / 10.71 / 10.51 / 10.51 cm
+    # at 1.2 / 1.3 / 1.4 / 1.5 / 1.6 / 2.0; past 1.4 the reach stretches her shoulder's skin towards a tear
+    # (the sample take's largest edge ratio 2.72 at 1.4, 2.93 at 1.5, 3.59 at 1.6; tests/test_skinning.py)
     hold_near: float = 0.35  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1;
     # his hand at her shoulder is his hand on her back, not a hold; 0: never)
     # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md, "Steps"):

@@ -51,8 +51,8 @@ def test_a_hold_brings_her_wrist_to_his_hand():
 
 @pytest.mark.parametrize("where, pulled", [
     (1.02, True),  # past her arm's length: the clavicle helps, still held
-    (1.45, True),  # past her arm's length, within hold_reach - 0.1
-    (1.65, False),  # past hold_reach (1.6 of her arm): faded out
+    (1.25, True),  # past her arm's length, within hold_reach - 0.1
+    (1.45, False),  # past hold_reach (1.4 of her arm): faded out
     (0.15, False),  # at her shoulder (his hand on her back): faded out
     (0.60, True),
 ])
