@@ -48,6 +48,26 @@ def positive_float(text: str) -> float:
     return v
 
 
+def port_number(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 1 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a UDP port within 1..65535, got {text!r}")
+    return v
+
+
+def share(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = -1.0
+    if not 0.0 <= v < 1.0:
+        raise argparse.ArgumentTypeError(f"must be a share within [0, 1), got {text!r}")
+    return v
+
+
 def positive_int(text: str) -> int:
     try:
         v = int(text)

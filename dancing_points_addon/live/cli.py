@@ -11,35 +11,13 @@ import os
 import sys
 import time
 
-from ..argtypes import (EXIT_OK, add_calibration_arguments, calibration_options, height_metres, positive_float,
-                        printable, thread_count)
+from ..argtypes import (EXIT_OK, add_calibration_arguments, calibration_options, height_metres, port_number,
+                        positive_float, printable, share, thread_count)
 from ..errors import InputError, UserError
 from . import OSC_PORT, VMC_PORT
 
 STATUS_EVERY_S = 0.5  # on a terminal the status line is redrawn this often
 STATUS_LOG_EVERY_S = 5.0  # elsewhere a status line is printed this often
-
-
-def port_number(text: str) -> int:
-    import argparse
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
-    if not 1 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"must be a UDP port within 1..65535, got {text!r}")
-    return v
-
-
-def share(text: str) -> float:
-    import argparse
-    try:
-        v = float(text)
-    except ValueError:
-        v = -1.0
-    if not 0.0 <= v < 1.0:
-        raise argparse.ArgumentTypeError(f"must be a share within [0, 1), got {text!r}")
-    return v
 
 
 def _default_port(fmt: str) -> int:
