@@ -1,9 +1,13 @@
 """Decode ``EXT_meshopt_compression`` glTF binaries (numpy only, no ``bpy``).
 
-Blender's glTF importer (up to 5.0 at least) refuses files that *require*
+Blender's glTF importer refuses files that *require*
 ``EXT_meshopt_compression`` ("Extension EXT_meshopt_compression is not
-available"), which is how many avatar libraries ship their ``.glb`` files
-(glTF-Transform / gltfpack output). :func:`decompress_glb` rewrites such a file
+available on this addon version"; checked 2026-11-28 with ``bpy`` 5.0.1 on the
+avatars of ``../shared/assets``), which is how many avatar libraries ship their
+``.glb`` files (glTF-Transform / gltfpack output). Upstream support was merged
+for Blender 5.2 or later (KhronosGroup/glTF-Blender-IO pull request 2701, issue
+2690), so every version this extension supports (4.2 LTS to 5.1) needs this
+module; drop it when 5.2 is the oldest supported version. :func:`decompress_glb` rewrites such a file
 as a plain ``.glb`` (every buffer view decoded into one binary chunk, the
 extension removed) that the importer reads; everything else in the file is kept
 as it is.
