@@ -11,9 +11,7 @@ Mapping network (paper §4.3)
             three tracked points in that frame's own root (9)      -> 30 × 26 = 780
 
 Placement network (issue 13)
-    input   the mapping's (195); trained with ``--placement-state`` (measured, not
-            shipped), also her roots at ``PLACEMENT_LAGS`` frames back relative
-            to the leader's current root (3 × 4)                  -> 195 + 12 = 207
+    input   the mapping's (195)
     output  the mapping's layout (780); the runtime reads her roots from it
 
 Tracking network (paper §4.2), one dancer
@@ -44,11 +42,6 @@ FRAME_POINTS = slice(ROOT_DIM, FRAME_DIM)
 
 MAP_IN = PAST * FRAME_DIM
 MAP_OUT = FUTURE * 2 * FRAME_DIM
-# A placement network trained with ``train --placement-state`` also sees her own placement: her
-# roots at these frames back (t − 1, t − 6, t − 11: at run time her output so far) relative to the
-# leader's current root (its metadata's ``state_lags``)
-PLACEMENT_LAGS = (1, 6, 11)
-PLACE_IN = MAP_IN + ROOT_DIM * len(PLACEMENT_LAGS)
 POSE_DIM = N_JOINTS * 3 + N_JOINTS * 6 + 4
 TRACK_IN = POSE_DIM + len(TRACK_KEYS) * FRAME_DIM
 KEY_OUT = ROOT_DIM + N_JOINTS * 3 + N_JOINTS * 6 + 4
@@ -78,7 +71,7 @@ def pose_rotations(pose: np.ndarray) -> np.ndarray:
 def layout() -> dict:
     """Feature layout, written into the ONNX metadata."""
     return {"fps": FPS, "past": PAST, "future": FUTURE, "track_keys": TRACK_KEYS.tolist(),
-            "map_in": MAP_IN, "map_out": MAP_OUT, "place_in": PLACE_IN,
+            "map_in": MAP_IN, "map_out": MAP_OUT,
             "track_in": TRACK_IN, "track_out": TRACK_OUT, "key_out": KEY_OUT, "pose_dim": POSE_DIM,
             "rotation": "6d (first two columns)", "root": "(x, z, cos, sin), heading from +Z towards +X"}
 
@@ -93,19 +86,6 @@ def mapping_input(roots: np.ndarray, tracked: np.ndarray) -> np.ndarray:
     p = to_local(tracked.reshape(-1, 3), ref[0]) if B == 1 else to_local(tracked.reshape(B, -1, 3), ref)
     out[:, FRAME_POINTS] = p.reshape(-1, POINTS_DIM)
     return out.reshape(B, MAP_IN)
-
-
-def placement_state(lead_root_t: np.ndarray, her_roots: np.ndarray) -> np.ndarray:
-    """Her roots ``(B, len(PLACEMENT_LAGS), 4)`` (world, at :data:`PLACEMENT_LAGS`)
-    relative to the leader's current root ``(B, 4)`` -> ``(B, PLACE_IN - MAP_IN)``."""
-    lead_root_t = np.asarray(lead_root_t)
-    return root_relative(lead_root_t[:, None], np.asarray(her_roots)).reshape(len(lead_root_t), -1)
-
-
-def placement_input(x: np.ndarray, lead_root_t: np.ndarray, her_roots: np.ndarray) -> np.ndarray:
-    """The placement network's input: the mapping input ``x (B, MAP_IN)`` and
-    :func:`placement_state` -> ``(B, PLACE_IN)``."""
-    return np.concatenate([x, placement_state(lead_root_t, her_roots).astype(x.dtype)], axis=1)
 
 
 def _dancer_future(ref, roots, tracked):

@@ -61,10 +61,6 @@ class FollowerOptions:
     horizon: int = 10  # predicted frames averaged into the placement target
     pull: float = 0.05  # share of the gap to the target closed per frame
     pull_heading: float = 0.05  # the same for her heading
-    # the pull while all her foot points are locked, blended by her locked share (< 0: ``pull``
-    # always; on val 0 / 0.02 / 0.03 / 0.08 gave full-body 36.12 / 35.67 / 35.47 / 34.78, hand
-    # 12.34 / 11.96 / 11.60 / 11.55, against 35.14 and 11.08: not taken)
-    pull_planted: float = -1.0
     face_leader: float = 0.5  # share of her target heading turned to face the leader
     smooth: float = 0.8  # exponential smoothing of the predicted trajectories across frames (0: none)
     ease: float = 0.1  # per-frame easing of the tracker's keys towards the target
@@ -84,30 +80,15 @@ class FollowerOptions:
     # (``ik.ArmTurnLimit``; the fastest real arm in the salsa train frames: 30). A hand hold whose
     # target passes her shoulder otherwise flips her arm (130° in a frame, with the anchor; 0: free)
     arm_turn: float = 30.0
-    # Her hips turn this share of the way from their heading to the mapping's predicted heading
-    # of her (the next frame's), her upper body as it was (``HipTwist``): her shoulders keep
-    # facing where her placement turns her (half towards the leader), so her holds keep their
-    # reach, while her hips follow the mapping. At most ``hip_twist_max`` degrees, eased by
-    # ``hip_twist_rate`` a frame; in her output only (0: off). Chosen on val: hip heading error
-    # 55.6 -> 51.3 degrees, her hands unchanged
+    # Her hips turn this share of the way from their heading to the hip-heading network's
+    # (``nets["hip"]``, ``hip_heading.onnx``: her hip heading relative to his root from his past
+    # 0.5 s, over ``HIP_BINS`` bins; its circular mean), her upper body as it was (``HipTwist``):
+    # her shoulders keep facing where her placement turns her (half towards the leader), so her
+    # holds keep their reach. At most ``hip_twist_max`` degrees, eased by ``hip_twist_rate`` a
+    # frame; in her output only (0: off)
     hip_twist: float = 0.5
     hip_twist_max: float = 45.0
     hip_twist_rate: float = 0.2
-    # where her hips are turned towards: "net", the hip-heading network's (``nets["hip"]``,
-    # ``hip_heading.onnx``: her hip heading relative to his root from his past 0.5 s, over
-    # ``HIP_BINS`` bins; its circular mean), or "mapping", the predicted heading of her root
-    # (the placement network's with ``placement_source="net"``). Chosen on val (four mapping
-    # seeds): heading 50.2 -> 46.1 degrees, her full-body error, hands and holds as they were
-    hip_source: str = "net"
-    # where her placement steers to: "net", the placement network's predicted roots of her
-    # (``nets["placement"]``, ``placement.onnx``: the mapping's network and recipe, trained also on
-    # the clips played backwards, where a take's start is a couple parting, with the loss on her
-    # outputs): her predicted roots (position and heading) from it, spliced into the mapping's
-    # output, so her placement, her tracker's keys and her predicted wrists (holds) are placed by
-    # them, her predicted points in her root frame and his duet the mapping's; or "mapping", the
-    # mapping's roots. Chosen on val (four seed pairs): her full-body error 34.50 -> 32.40 cm,
-    # heading 46.0 -> 45.9, hand 11.58 -> 10.00
-    placement_source: str = "net"
     # degrees: in her output (after her foot lock), each thigh's twist about itself against her pelvis
     # within this, and the bones below it within her state's limits (``pose.LegJoints.twist``,
     # ``pose.LEG_TWIST_DEG``; only the bones' roll changes, no joint moves; 0: none in her output).
@@ -120,20 +101,15 @@ class FollowerOptions:
     hold_on: float = 0.7  # m, predicted wrist distance under which a hold is full
     hold_off: float = 1.0  # m, over which there is none
     hold_gap: float = 0.09  # m, wrist-to-wrist distance of a hold (wrist joints: the hands between them)
-    hold_frames: int = 6  # blend in/out
-    hold_smooth: float = 0.7  # exponential smoothing of the hold's pull on her wrist
-    hold_switch: float = 0.05  # m: a held hand changes partner when his other hand is this much closer
-    # (< 0: never while held; the hold ends when its partner is over hold_off away)
-    hold_ramp: bool = True  # the hold's weight a ramp of the distance (hold_on..hold_off), not a switch
-    hold_soft: float = 0.03  # m: his two hands weighted by a softmax of distance / hold_soft (0: one partner)
-    hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (0: exponential smoothing)
+    hold_frames: int = 6  # the hold's weight changes by at most 1 / hold_frames a frame
+    hold_soft: float = 0.03  # m: his two hands weighted by a softmax of distance / hold_soft (> 0)
+    hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (> 0)
     # the spring's feed-forward: this share of the pull's own velocity (smoothed across frames by
     # ``hold_lead_smooth``) drives it, so it lags less behind a moving hold (0: none; 1: no lag at a
     # steady speed). Chosen on val with 9-frame steps: hand 12.65 -> 11.80 cm, jitter 177 -> 191
     hold_lead: float = 0.5
     hold_lead_smooth: float = 0.7
     hold_soft_rate: float = 0.04  # the soft partner's weights change by at most this much a frame (0: free)
-    hold_arm_ik: str = "swing"  # her arm IK under a hold (``ik.EndEffectorIK``'s ``arm``): "swing" or "pole"
     hold_reach: float = 1.4  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
     # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward). Chosen
     # on val with the device-offset mapping family: hand 11.87 / 11.43 / 11.04 / 10.71 / 10.51 / 10.51 cm
@@ -142,17 +118,14 @@ class FollowerOptions:
     hold_near: float = 0.35  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1;
     # his hand at her shoulder is his hand on her back, not a hold; 0: never)
     # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md, "Steps"):
-    # with ``lock_contacts`` "net" her foot points plant and lift
-    # as the contact network says (hysteresis ``lock_on`` / ``lock_off`` on its probabilities),
-    # on her floor (its floor levels, from the train split); "tracker": her tracker's own
-    # contact output and the kinematic evidence, on the lowest each foot point has been lately.
+    # her foot points plant and lift as the contact network says (its probabilities smoothed
+    # ``contact_smooth`` across frames, hysteresis ``lock_on`` / ``lock_off``), on her floor
+    # (its floor levels, from the train split).
     # A planted foot holds until her predicted foot is ``lock_drift`` m from it; a release is a
     # catch-up step of ``step_frames`` frames, at least ``step_height`` m high (at most
     # ``step_max``); a lock blends in over ``lock_blend`` frames; a foot that plants stays where
     # it was on the last frame (``land_still``) and is put at most ``lock_floor`` m above her
-    # floor (< 0: where it is), once it moves slower than ``engage_speed`` m/s (0: at once); a
-    # free foot moving fast is lifted ``clearance`` m off her floor (0: not)
-    lock_contacts: str = "net"
+    # floor (< 0: where it is); a free foot moving fast is lifted ``clearance`` m off her floor (0: not)
     contact_smooth: float = 0.5
     lock_on: float = 0.4
     lock_off: float = 0.3
@@ -166,7 +139,6 @@ class FollowerOptions:
     land_still: bool = True
     clearance: float = 0.05
     clear_rate: float = 0.125
-    engage_speed: float = 0.0
 
 
 class Placement:
@@ -176,7 +148,6 @@ class Placement:
         self.o = options
         self._prev = None
         self.leashed = 0  # frames on which the leash engaged (reported, expected rare)
-        self.support = 0.0  # share of her foot points locked on the last frame (set by the runtime)
 
     def smooth(self, *arrays):
         """Exponential smoothing across frames of the mapping's predicted
@@ -240,10 +211,7 @@ class Placement:
     def step(self, prev, proposal, target):
         """The new root: ``proposal`` (the tracker's) pulled towards ``target``,
         within the speed and turn limits from ``prev``."""
-        pull = self.o.pull
-        if self.o.pull_planted >= 0:
-            pull = pull + self.support * (self.o.pull_planted - pull)
-        x, z, _, _ = blend_root(proposal, target, pull)
+        x, z, _, _ = blend_root(proposal, target, self.o.pull)
         _, _, c, s = blend_root(proposal, target, self.o.pull_heading)
         px, pz, pc, ps = prev
         dx, dz = x - px, z - pz
@@ -324,10 +292,9 @@ class HipTwist:
     her upper body left as it is (see ``FollowerOptions.hip_twist``). Real
     dancers' hips and heads face apart by 25 degrees on average (the follower's,
     in the salsa val frames); her placement turns her root half way to face
-    the leader, which keeps her holds within reach, and a prediction of where
-    her hips face is closer: the hip-heading network's (``hip_source="net"``;
-    val: 39 degrees off her hips as an estimate) or the mapping's of her head
-    (50.9 degrees off against her hips' 55.6). Per frame, in place."""
+    the leader, which keeps her holds within reach, and the hip-heading
+    network's prediction of where her hips face is closer (val: 39 degrees off
+    her hips as an estimate). Per frame, in place."""
 
     _LEGS = [PELVIS] + [int(i) for i in LOWER_BODY]
     # the SPEC joint order has them first: a slice (a view) costs less than an index list
@@ -369,15 +336,13 @@ class HandHold:
     pairs is predicted close, the follower's wrist of that pair is pulled by
     her arm IK to ``hold_gap`` from the leader's wrist (the leader's wrist is
     his tracked hand) on the side of her shoulder. The hold's weight follows
-    a ramp of the predicted distance (``hold_ramp``: full under ``hold_on``,
-    none over ``hold_off``; without it a switch with that hysteresis), changing
-    by at most 1 / ``hold_frames`` per frame. Her hand's
+    a ramp of the predicted distance (full under ``hold_on``, none over
+    ``hold_off``), changing by at most 1 / ``hold_frames`` per frame. Her hand's
     partner is soft (``hold_soft``): his two wrists weighted by a softmax of
     their predicted distances, so no discrete choice flips between his hands
-    on a millimetre of noise; a hard partner that stayed held while his other
-    hand was the close one dragged her arm across (a 112° forearm turn in one
-    frame) — with one partner, ``hold_switch`` changes it when the other hand
-    is clearly closer. The soft partner's weights change by at most
+    on a millimetre of noise (a hard partner that stayed held while his other
+    hand was the close one dragged her arm across: a 112° forearm turn in one
+    frame). The soft partner's weights change by at most
     ``hold_soft_rate`` a frame, so when his hands swap as the nearer one her
     wrist goes over in two thirds of a second instead of being swept across. The pull
     (her wrist's offset from where her tracker puts it) follows a critically
@@ -395,19 +360,19 @@ class HandHold:
     SHOULDERS = (JOINT_INDEX["lclavicle"], JOINT_INDEX["rclavicle"])
 
     def __init__(self, options: FollowerOptions):
+        if not (options.hold_soft > 0 and options.hold_spring > 0):
+            raise ValueError(f"FollowerOptions.hold_soft and hold_spring must be > 0, not {options.hold_soft!r}, "
+                             f"{options.hold_spring!r}")
         self.o = options
         self.reset()
 
     def reset(self):
         self.weight = [0.0, 0.0]  # per follower hand
-        self.partner = [0, 0]  # leader wrist index (0 left, 1 right) per follower hand
-        self.active = [False, False]
         self._offset = [None, None]
         self._velocity = [None, None]
         self._goal = [None, None]
         self._lead = [None, None]
         self._soft = [None, None]
-        self._ds = [1e9, 1e9]
 
     def targets(self, leader_pos, follower_pos, pred_dist, arm_length):
         """Per follower hand a target (3,) or None. ``pred_dist (2, 2)``: the
@@ -422,51 +387,29 @@ class HandHold:
         his = None  # his wrists, as lists, once needed
         for j in (0, 1):
             col = (pd[0][j], pd[1][j])
-            i = 1 if col[1] < col[0] else 0
-            d = col[i]
-            if o.hold_soft > 0:
-                # soft partner: his two hands weighted by a softmax of their
-                # predicted distances (no discrete choice to flip on noise)
-                e0, e1 = np.exp(-(pred_dist[:, j] - d) / o.hold_soft).tolist()  # numpy's exp, as before
-                sm = e0 + e1
-                soft = (e0 / sm, e1 / sm)
-                if o.hold_soft_rate > 0 and self._soft[j] is not None:
-                    # his hands swap as her partner gradually: her wrist is not swept across
-                    r = o.hold_soft_rate
-                    soft = tuple(p + min(max(q - p, -r), r) for p, q in zip(self._soft[j], soft))
-                ds = float(np.array(soft) @ pred_dist[:, j])
-                self.active[j] = ds < (o.hold_off if self.active[j] else o.hold_on)
-                self._soft[j] = soft
-                self._ds[j] = ds
-            elif self.active[j]:
-                # the hold stays with its partner while that one is close; the
-                # other of his hands takes over when clearly closer (the spring
-                # carries her wrist across)
-                dp = col[self.partner[j]]
-                if o.hold_switch >= 0 and i != self.partner[j] and d < dp - o.hold_switch:
-                    self.partner[j], dp = i, d
-                self.active[j] = dp < o.hold_off
-            else:
-                self.active[j] = d < o.hold_on
-                self.partner[j] = i
+            d = col[1] if col[1] < col[0] else col[0]
+            # soft partner: his two hands weighted by a softmax of their
+            # predicted distances (no discrete choice to flip on noise)
+            e0, e1 = np.exp(-(pred_dist[:, j] - d) / o.hold_soft).tolist()  # numpy's exp, as before
+            sm = e0 + e1
+            soft = (e0 / sm, e1 / sm)
+            if o.hold_soft_rate > 0 and self._soft[j] is not None:
+                # his hands swap as her partner gradually: her wrist is not swept across
+                r = o.hold_soft_rate
+                soft = tuple(p + min(max(q - p, -r), r) for p, q in zip(self._soft[j], soft))
+            ds = float(np.array(soft) @ pred_dist[:, j])
+            self._soft[j] = soft
+            # the weight goes towards a ramp of the distance (full under hold_on,
+            # none over hold_off), at most a step per frame
             step = 1.0 / max(o.hold_frames, 1)
-            if o.hold_ramp and o.hold_soft > 0:
-                # no switch: the weight goes towards a ramp of the distance (full
-                # under hold_on, none over hold_off), at most a step per frame
-                goal_w = min(max((o.hold_off - self._ds[j]) / max(o.hold_off - o.hold_on, 1e-6), 0.0), 1.0)
-                self.weight[j] += min(max(goal_w - self.weight[j], -step), step)
-            else:
-                self.weight[j] = min(1.0, self.weight[j] + step) if self.active[j] else max(0.0, self.weight[j] - step)
-            if self.weight[j] <= 0.0 and (o.hold_spring <= 0 or self._offset[j] is None
-                                          or max(abs(x) for x in self._offset[j]) < 1e-4):
+            goal_w = min(max((o.hold_off - ds) / max(o.hold_off - o.hold_on, 1e-6), 0.0), 1.0)
+            self.weight[j] += min(max(goal_w - self.weight[j], -step), step)
+            if self.weight[j] <= 0.0 and (self._offset[j] is None or max(abs(x) for x in self._offset[j]) < 1e-4):
                 self._offset[j] = self._velocity[j] = self._goal[j] = self._lead[j] = None
                 continue
             if his is None:
                 his = leader_pos[list(WRISTS)]
-            if o.hold_soft > 0:
-                lw = (np.array(self._soft[j]) @ his).tolist()
-            else:
-                lw = his[self.partner[j]].tolist()
+            lw = (np.array(self._soft[j]) @ his).tolist()
             fw = follower_pos[WRISTS[j]].tolist()
             sh = follower_pos[self.SHOULDERS[j]].tolist()
             v = [a - b for a, b in zip(sh, lw)]
@@ -481,35 +424,30 @@ class HandHold:
                 # her wrist is not folded onto her own shoulder
                 w *= min(max((reach - o.hold_near + 0.1) / 0.2, 0.0), 1.0)
             w = w * w * (3.0 - 2.0 * w)  # smoothstep
-            # her wrist's offset from her body follows the hold smoothly: the
-            # target is the previous frame's offset eased towards this one
+            # her wrist's offset from her body follows the hold's through a
+            # critically damped spring (semi-implicit Euler at 30 Hz): the
+            # pull's acceleration is bounded, so the wrist does not jerk
             off = [w * (a - b) for a, b in zip(goal, fw)]
             prev = self._offset[j]
-            if o.hold_spring > 0:
-                # critically damped spring (semi-implicit Euler at 30 Hz): the
-                # pull's acceleration is bounded, so the wrist does not jerk
-                if prev is None:
-                    prev, vel = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
-                else:
-                    vel = self._velocity[j]
-                om = 2.0 * pi * o.hold_spring
-                dt = 1.0 / 30.0
-                lead = (0.0, 0.0, 0.0)
-                if o.hold_lead > 0 and self._goal[j] is not None:
-                    # the pull's own velocity, fed forward
-                    lead = [o.hold_lead * (a - b) / dt for a, b in zip(off, self._goal[j])]
-                    if o.hold_lead_smooth > 0 and self._lead[j] is not None:
-                        ls = o.hold_lead_smooth
-                        lead = [ls * a + (1.0 - ls) * b for a, b in zip(self._lead[j], lead)]
-                    self._lead[j] = lead
-                self._goal[j] = off
-                k1, k2 = om * om, 2.0 * om
-                vel = [u + dt * (k1 * (a - p) + k2 * (c - u)) for u, a, p, c in zip(vel, off, prev, lead)]
-                off = [p + dt * u for p, u in zip(prev, vel)]
-                self._velocity[j] = vel
-            elif prev is not None and o.hold_smooth > 0:
-                off = [o.hold_smooth * p + (1.0 - o.hold_smooth) * a for p, a in zip(prev, off)]
+            if prev is None:
+                prev, vel = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+            else:
+                vel = self._velocity[j]
+            om = 2.0 * pi * o.hold_spring
+            dt = 1.0 / 30.0
+            lead = (0.0, 0.0, 0.0)
+            if o.hold_lead > 0 and self._goal[j] is not None:
+                # the pull's own velocity, fed forward
+                lead = [o.hold_lead * (a - b) / dt for a, b in zip(off, self._goal[j])]
+                if o.hold_lead_smooth > 0 and self._lead[j] is not None:
+                    ls = o.hold_lead_smooth
+                    lead = [ls * a + (1.0 - ls) * b for a, b in zip(self._lead[j], lead)]
+                self._lead[j] = lead
+            self._goal[j] = off
+            k1, k2 = om * om, 2.0 * om
+            vel = [u + dt * (k1 * (a - p) + k2 * (c - u)) for u, a, p, c in zip(vel, off, prev, lead)]
+            off = [p + dt * u for p, u in zip(prev, vel)]
+            self._velocity[j] = vel
             self._offset[j] = off
-            if o.hold_spring > 0 or w > 0.0:
-                out[j] = np.array([a + b for a, b in zip(fw, off)])
+            out[j] = np.array([a + b for a, b in zip(fw, off)])
         return out

@@ -89,8 +89,7 @@ class FootLocker:
     straight towards it (the ankle then misses the lock by the shortfall).
 
     Options off by default (the follower uses them, see ``FollowerOptions``):
-    ``engage_speed`` (m/s): a point locks only once it moves slower than this
-    (horizontally, since the last output); ``land_still``: a free foot that
+    ``land_still``: a free foot that
     locks stays where it was on the last frame instead of carrying that
     frame's motion into the lock; ``clearance`` (m): a free foot moving
     faster than ``clear_speed[0]`` m/s is lifted off its floor, fully from
@@ -102,7 +101,7 @@ class FootLocker:
                  max_drift: float = 0.15, floor=None, pole_forward: float = 0.1,
                  step_height: float = 0.06, step_scale: float = 0.3, step_max: float = 0.12,
                  clearance: float = 0.0, clear_speed=(0.3, 0.6), land_still: bool = False,
-                 engage_speed: float = 0.0, step_frames: int | None = None, clear_rate: float = 0.25,
+                 step_frames: int | None = None, clear_rate: float = 0.25,
                  lift_ball: bool = False):
         if not off <= on:
             raise ValueError("off threshold must not exceed the on threshold")
@@ -116,12 +115,11 @@ class FootLocker:
         self.step_height, self.step_scale, self.step_max = float(step_height), float(step_scale), float(step_max)
         self.clearance = float(clearance)
         self.land_still = bool(land_still)
-        self.engage_speed = float(engage_speed)
         self.clear_speed = (float(clear_speed[0]), float(clear_speed[1]))
         self.lift_ball = bool(lift_ball)
         self.clear_rate = float(clear_rate)  # the swing clearance's lift changes by at most this share a frame
         # each side's last output (ankle, ball) is kept for the options that need its speed
-        self._keep_prev = self.clearance > 0.0 or self.land_still or self.engage_speed > 0.0
+        self._keep_prev = self.clearance > 0.0 or self.land_still
         self.floor = None if floor is None else [float(x) for x in np.asarray(floor).reshape(4)]
         j = _J
         # rows gathered per frame: hip, knee, ankle, ball, toe (left, then right)
@@ -217,11 +215,6 @@ class FootLocker:
         stepping = la is None and lb is None and st.lift is not None and st.k < NS
         engage_a = new_a is None and st.on_a and st.armed_a and not stepping
         engage_b = new_b is None and st.on_b and st.armed_b and not stepping
-        if self.engage_speed > 0.0 and st.prev is not None and (engage_a or engage_b):
-            # a point plants only once it is slow (horizontally, since the last output)
-            lim = (self.engage_speed / FPS) ** 2
-            engage_a = engage_a and _moved2(a, st.prev[0]) < lim
-            engage_b = engage_b and _moved2(b, st.prev[1]) < lim
         free_old = la is None and lb is None
         if free_old and st.k >= NS and not (engage_a or engage_b):
             return self._swing(st, rows, fa, fb, fwd)  # free and settled: the prediction (lifted when fast)

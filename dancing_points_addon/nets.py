@@ -179,8 +179,6 @@ def check_models(model_dir=None, threads: int = 1, role: str = "leader") -> str:
     paths = model_paths(d, role)
     want = F.layout()
     ins = {"leader": "track_in", "follower": "track_in"}
-    if "state_lags" in nets["placement"].meta:  # (train --placement-state: her own placement beside the lead)
-        ins["placement"] = "place_in"
     sizes = {k: (want[ins.get(k, "map_in")], None) for k in MODEL_FILES}
     for kind, net in nets.items():
         path = paths[kind]
@@ -205,14 +203,6 @@ def check_models(model_dir=None, threads: int = 1, role: str = "leader") -> str:
                 raise ModelError(f"{path}: gives {n_out} outputs, the contact network needs 8")
             if contact_floor_levels(net.meta) is None:
                 raise ModelError(f"{path}: no floor_levels (four numbers per dancer) in its metadata")
-        if kind == "placement" and "state_lags" in net.meta:
-            try:
-                lags = json.loads(net.meta["state_lags"])
-            except ValueError:
-                lags = None
-            if lags != list(F.PLACEMENT_LAGS):
-                raise ModelError(f"{path}: sees her placement {net.meta['state_lags']} frames back, this version "
-                                 f"feeds {list(F.PLACEMENT_LAGS)}")
         if kind in ("mapping", "placement"):
             n_out = net.session.get_outputs()[0].shape[-1]
             if isinstance(n_out, int) and n_out != want["map_out"]:

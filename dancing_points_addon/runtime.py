@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from math import atan2, sqrt
+from math import sqrt
 
 import numpy as np
 
@@ -249,7 +249,7 @@ class Synthesizer:
     pulled towards the raw prediction). Both dancers' next tracker step starts
     from the consistent skeleton pose of this one (pose recovery). The contact
     network (``nets["contacts"]``, on the mapping's input) times the follower's
-    steps: her foot lock reads its probabilities (``FollowerOptions.lock_contacts``),
+    steps: her foot lock reads its probabilities (``FollowerOptions.lock_on``),
     and they are her output contacts (with foot locking off, her tracker's are).
     ``record_predictions``: keep each step's mapping prediction
     (:attr:`last_prediction`, :attr:`Duet.predictions`) to show the method; it
@@ -292,13 +292,11 @@ class Synthesizer:
         # each dancer's floor level per foot point (training scale), from the contact network
         contacts = nets.get("contacts")
         self.floor_levels = None if contacts is None else contact_floor_levels(getattr(contacts, "meta", {}) or {})
-        # her steps timed by the contact network (``FollowerOptions.lock_contacts``)
+        # her steps timed by the contact network
         fo = follower
-        if fo is not None and fo.lock_contacts not in ("net", "tracker"):
-            raise ValueError(f"FollowerOptions.lock_contacts must be 'net' or 'tracker', not {fo.lock_contacts!r}")
-        self._net_steps = bool(self.foot_lock and fo is not None and fo.lock_contacts == "net")
+        self._net_steps = bool(self.foot_lock and fo is not None)
         if self._net_steps and self.floor_levels is None:
-            raise ValueError("FollowerOptions.lock_contacts='net' needs the contact network (contacts.onnx "
+            raise ValueError("the follower's foot lock needs the contact network (contacts.onnx "
                              "with floor_levels in its metadata)")
         # her lower body pulled towards the pose anchor's (``FollowerOptions.anchor``)
         self._anchor = float(fo.anchor) if fo is not None else 0.0
@@ -306,19 +304,12 @@ class Synthesizer:
             raise ValueError(f"FollowerOptions.anchor must be within 0..1, not {fo.anchor!r}")
         if self._anchor > 0.0 and nets.get("anchor") is None:
             raise ValueError("FollowerOptions.anchor needs the pose anchor network (pose_anchor.onnx)")
-        if fo is not None and fo.hip_source not in ("net", "mapping"):
-            raise ValueError(f"FollowerOptions.hip_source must be 'net' or 'mapping', not {fo.hip_source!r}")
-        if fo is not None and fo.hip_twist > 0 and fo.hip_source == "net" and nets.get("hip") is None:
-            raise ValueError("FollowerOptions.hip_source='net' needs the hip-heading network (hip_heading.onnx)")
-        if fo is not None and fo.placement_source not in ("net", "mapping"):
-            raise ValueError(f"FollowerOptions.placement_source must be 'net' or 'mapping', not "
-                             f"{fo.placement_source!r}")
-        # her roots (where she stands and faces) from the placement network (else the mapping's)
-        self._placement_net = fo is not None and fo.placement_source == "net"
+        if fo is not None and fo.hip_twist > 0 and nets.get("hip") is None:
+            raise ValueError("FollowerOptions.hip_twist needs the hip-heading network (hip_heading.onnx)")
+        # her roots (where she stands and faces) from the placement network
+        self._placement_net = fo is not None
         if self._placement_net and nets.get("placement") is None:
-            raise ValueError("FollowerOptions.placement_source='net' needs the placement network (placement.onnx)")
-        # a placement network trained with ``train --placement-state`` also sees her own placement
-        self._placement_state = self._placement_net and "state_lags" in getattr(nets["placement"], "meta", {})
+            raise ValueError("the follower's placement needs the placement network (placement.onnx)")
         # the follower's arm lengths (shoulder to wrist), for hand holds
         levels = self.floor_levels or {r: DEFAULT_FLOOR_LEVELS for r in ("leader", "follower")}
         self._floor_guards = (FloorGuard(levels["leader"]), FloorGuard(levels["follower"]))
@@ -376,7 +367,6 @@ class Synthesizer:
         self._separation = Separation(fo.min_distance) if fo is not None else None
         self._hold = HandHold(fo) if fo is not None and fo.hold else None
         self._fol_target = None  # (offset from the leader, world root) this frame
-        self._her_roots = []  # her roots so far, the last max(F.PLACEMENT_LAGS) frames (the placement network's)
         self._contact_p = None  # the contact network's probabilities this frame (leader 4, follower 4)
         self._fol_effector = None
         if self.foot_lock or self.hand_ik:
@@ -387,7 +377,7 @@ class Synthesizer:
                                             "step_max": fo.step_max, "step_frames": fo.step_frames,
                                             "clear_rate": fo.clear_rate, "lift_ball": fo.lift_ball,
                                             "clearance": fo.clearance, "land_still": fo.land_still,
-                                            "blend_frames": fo.lock_blend, "engage_speed": fo.engage_speed,
+                                            "blend_frames": fo.lock_blend,
                                             "on": fo.lock_on, "off": fo.lock_off}
                 self._lockers = (FootLocker(), FootLocker(**fol))
                 if self._net_steps and fo.lock_floor >= 0:  # her locks go on her floor (the train split's)
@@ -396,14 +386,12 @@ class Synthesizer:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
         if self._hold is not None:
             from . import ik
-            self._fol_effector = ik.EndEffectorIK(**{**self.ik_options, "arm": fo.hold_arm_ik})
+            self._fol_effector = ik.EndEffectorIK(**self.ik_options)
         self._arm_limit = None
         if fo is not None and fo.arm_turn > 0:
             from . import ik
             self._arm_limit = ik.ArmTurnLimit(fo.arm_turn)
         self._hip_twist = HipTwist(fo) if fo is not None and fo.hip_twist > 0 else None
-        # her hips turned towards the hip-heading network's heading (else the mapping's)
-        self._hip_net = self._hip_twist is not None and fo.hip_source == "net"
         # her legs kept on the skeleton's joints where the anchor pulls them (``pose.LegJoints``)
         self._leg_joints = LegJoints(self.bone_vectors["follower"]) if self._anchor > 0.0 else None
         # her output's thighs: their twist within ``out_thigh_twist`` (the other leg bones' as her state's)
@@ -592,9 +580,8 @@ class Synthesizer:
             self.hist_tracked[-1] = tracked_s
         x = F.mapping_input(self.hist_roots[None], self.hist_tracked[None])
         y = self.nets["mapping"](x)
-        if self._placement_net:  # her predicted roots from the placement network (seeing her placement or not)
-            px = self._placement_input(x, root, y) if self._placement_state else x
-            y = F.splice_follower_roots(y, self.nets["placement"](px))
+        if self._placement_net:  # her predicted roots from the placement network
+            y = F.splice_follower_roots(y, self.nets["placement"](x))
         if self._net_steps:
             p = self.nets["contacts"](x)[0].astype(np.float64)
             b = self.follower_options.contact_smooth
@@ -645,19 +632,12 @@ class Synthesizer:
             d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
         if self._anchor > 0.0:  # her output's hip joints turn with her pelvis (her state's need not)
             self._leg_joints.hips(*rigid[1])
-        if self._hip_twist is not None:  # her hips towards where she faces (the hip network's or the mapping's)
-            if self._hip_net:
-                heading = hip_heading_from_probs(self.nets["hip"](x)[0], root)
-            else:
-                heading = atan2(f_roots[0][3], f_roots[0][2])
-            self._hip_twist.step(*rigid[1], heading)
+        if self._hip_twist is not None:  # her hips towards where the hip-heading network says she faces
+            self._hip_twist.step(*rigid[1], hip_heading_from_probs(self.nets["hip"](x)[0], root))
         lp, lr = self._recover(0, *rigid[0], lc, tracked_s)
         fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
         if self._arm_limit is not None:  # her arms no faster than a real dancer's
             fp, fr = self._arm_limit.step(fp, fr)
-        if self._placement is not None and self._lockers is not None and self.follower_options.pull_planted >= 0:
-            # her planted share, for her placement's pull on the next frame
-            self._placement.support = sum(lock is not None for side in self._lockers[1].locks for lock in side) / 4.0
         if self._net_steps:  # her contacts are what timed her steps
             fc = self._contact_p[4:]
         self.t += 1
@@ -744,22 +724,6 @@ class Synthesizer:
         """Leader's key inputs: the current input frame, then the mapping's prediction."""
         return (np.concatenate([root[None], l_roots.take(self._OFF, axis=0)]),
                 np.concatenate([cur_local[None], l_tr.take(self._OFF, axis=0)]))
-
-    def _placement_input(self, x, root, y):
-        """The placement network's input: the mapping's ``x`` and her own roots at
-        ``F.PLACEMENT_LAGS`` frames back (her output so far, the earliest where
-        the take is younger) relative to the leader's current ``root``; on the first
-        frame, before she is placed, the mapping's prediction ``y`` of her next root."""
-        hist = self._her_roots
-        if self.follower.root is None:
-            rel = np.array(y, dtype=np.float64).reshape(F.FUTURE, 2, F.FRAME_DIM)[0, 1, F.FRAME_ROOT]
-            rel[2:] /= max(float(np.hypot(rel[2], rel[3])), 1e-9)
-            return np.concatenate([x, np.tile(rel, len(F.PLACEMENT_LAGS))[None].astype(x.dtype)], axis=1)
-        hist.append(self.follower.root.copy())
-        if len(hist) > max(F.PLACEMENT_LAGS):
-            del hist[0]
-        her = np.stack([hist[max(len(hist) - lag, 0)] for lag in F.PLACEMENT_LAGS])
-        return F.placement_input(x, root[None], her[None])
 
     def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
         """Follower's key inputs: last step's prediction of frame t, then this step's.

@@ -15,9 +15,8 @@ from dancing_points_addon.skeleton import LOWER_BODY
 from training.dataset import build_clips, split_range
 from training import train as T
 from training.data import (anchor_samples, contact_samples, default_pose, floor_levels_of, hip_heading_samples,
-                           mapping_samples, noisy_placement_state, placement_samples, time_reverse,
-                           tracking_samples)
-from training.export import FLOAT_COMPUTE_WEIGHTS, export, float_compute, mapping_keep, tracker_keep
+                           mapping_samples, time_reverse, tracking_samples)
+from training.export import dequantize_int8, export, mapping_keep, tracker_keep
 from training.model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
 
@@ -44,14 +43,14 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
         x, y = hip_heading_samples(clips[:2])
         assert y.shape[1] == HIP_BINS and np.array_equal(y.sum(1), np.ones(len(y)))  # one bin per frame
         model, n_in, keep, name = HipHeadingNet(F.MAP_IN, HIP_BINS, 32), F.MAP_IN, slice(None), "hip_heading"
-    elif kind == "placement":  # the mapping's network and her own placement, also on the clips played backwards
-        x, y = placement_samples(clips[:2])
-        xr, yr = placement_samples(time_reverse(clips[:2]))
+    elif kind == "placement":  # the mapping's network, also on the clips played backwards
+        x, y = mapping_samples(clips[:2])
+        xr, yr = mapping_samples(time_reverse(clips[:2]))
         w = np.ones((512, 2, len(MappingNet.GROUPS)), dtype=np.float32)
-        w[256:] = T.REVERSE_WEIGHTS["follower"]
+        w[256:] = T.REVERSE_WEIGHTS
         x, y = np.concatenate([x[:256], xr[:256]]), np.concatenate([y[:256], yr[:256]])
-        x = noisy_placement_state(x, np.random.default_rng(0), 0.4, 0.5)
-        model, n_in, keep, name = MappingNet(F.PLACE_IN, F.MAP_OUT, 32), F.PLACE_IN, mapping_keep(), "placement"
+        model, n_in, keep, name = (MappingNet(F.MAP_IN, F.MAP_OUT, 32, loss="norm"), F.MAP_IN, mapping_keep(),
+                                   "placement")
     else:
         x, y, _ = tracking_samples(clips[:2], "leader")
         cls = TrackingNet if kind == "tracker" else VanillaTracker
@@ -102,53 +101,34 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
         _check_float_compute(tmp_path, qpath, xb, want, m)
 
 
-def test_tracker_loss_options_route_gradients_as_documented(clips):
-    """The latent formulations compared on the val frames (models/README.md):
-    ``match_detach`` stops L_matching at the encoder's latent; ``estimator_rec``
-    adds L_rec through the inference path D(S(x)); ``l2_loss`` is the paper's
-    unsquared norm. Checked on real leader samples."""
+def test_tracker_losses_route_gradients_as_documented(clips):
+    """The tracker's losses: L_matching (squared distance of the latents) trains
+    the encoder and the estimator, not the decoder; L_rec is the squared error
+    of the decoded latent. Checked on real leader samples."""
     x, y, _ = tracking_samples(clips[:2], "leader")
     xb, yb = torch.from_numpy(x[:64]), torch.from_numpy(y[:64])
 
-    def grads(model, term):
-        model.fit_normalizers(xb, yb)
-        model.eval()  # no dropout or noise: the same forward pass for every term
-        model.zero_grad()
-        xn, yn = model.nx.norm(xb), model.ny.norm(yb - model._base(xb))
-        model._loss(xn, yn)[term].backward()
-        return {k: float(sum(p.grad.abs().sum() for p in getattr(model, k).parameters() if p.grad is not None))
-                for k in ("encoder", "estimator", "decoder")}
-
     torch.manual_seed(0)
-    plain = grads(TrackingNet(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM), "match")
-    assert plain["encoder"] > 0 and plain["estimator"] > 0 and plain["decoder"] == 0
-    detached = grads(TrackingNet(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM, match_detach=True), "match")
-    assert detached["encoder"] == 0 and detached["estimator"] > 0
-    est = grads(TrackingNet(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM, estimator_rec=1.0), "rec_s")
-    assert est["encoder"] == 0 and est["estimator"] > 0 and est["decoder"] > 0
-    # the paper's unsquared losses: the reconstruction's per-sample RMS, the
-    # matching's per-sample Euclidean norm
     m = TrackingNet(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM)
     m.fit_normalizers(xb, yb)
-    m.eval()
+    m.eval()  # no dropout or noise: the same forward pass for every term
+    m.zero_grad()
+    xn, yn = m.nx.norm(xb), m.ny.norm(yb - m._base(xb))
+    m._loss(xn, yn)["match"].backward()
+    g = {k: float(sum(p.grad.abs().sum() for p in getattr(m, k).parameters() if p.grad is not None))
+         for k in ("encoder", "estimator", "decoder")}
+    assert g["encoder"] > 0 and g["estimator"] > 0 and g["decoder"] == 0
     with torch.no_grad():
-        xn, yn = m.nx.norm(xb), m.ny.norm(yb - m._base(xb))
         z_e = m._latent(m.encoder(torch.cat([xn, yn], dim=-1)))
         z_s = m._latent(m.estimator(xn))
         d = m._decode(z_e, xn) - yn
-        squared = m._loss(xn, yn)
-        m.l2_loss = True
-        plain = m._loss(xn, yn)
-    torch.testing.assert_close(squared["rec"], (d ** 2).mean())
-    torch.testing.assert_close(squared["match"], ((z_e - z_s) ** 2).sum(-1).mean())
-    torch.testing.assert_close(plain["rec"], (d ** 2).mean(-1).sqrt().mean())
-    torch.testing.assert_close(plain["match"], (z_e - z_s).norm(dim=-1).mean())
-    assert abs(float(plain["match"]) - float(squared["match"])) > 1e-6
+        losses = m._loss(xn, yn)
+    torch.testing.assert_close(losses["rec"], (d ** 2).mean())
+    torch.testing.assert_close(losses["match"], ((z_e - z_s) ** 2).sum(-1).mean())
 
 
 def test_mapping_norm_loss_measures_each_point_per_frame():
-    """The mapping's norm loss (``train --map-loss norm``, the shipped recipe)
-    takes the Euclidean length of each frame's root position, heading and three
+    """The mapping's norm loss (the shipped recipe) takes the Euclidean length of each frame's root position, heading and three
     tracked points per dancer, unsquared, and averages them: an error of (3, 4)
     normalised units in one root position, or of (0, 3, 4) in one tracked
     point, counts 5 over the 60 × 5 groups; spread over two groups it counts
@@ -163,17 +143,18 @@ def test_mapping_norm_loss_measures_each_point_per_frame():
     d = torch.zeros(1, F.MAP_OUT)
     d[0, [F.FRAME_DIM * 7 + 1, F.FRAME_DIM * 7 + 2]] = torch.tensor([3.0, 4.0])  # root z and heading cos
     assert m.map_loss(d, yn).item() == pytest.approx(7.0 / groups, abs=1e-5)
-    # the squared error of the earlier recipe: (9 + 16) / outputs
+    # the squared error (the pose anchor's): (9 + 16) / outputs
     assert MappingNet(F.MAP_IN, F.MAP_OUT, 8, loss="mse").map_loss(d, yn).item() == pytest.approx(25.0 / F.MAP_OUT)
     with pytest.raises(ValueError):
         MappingNet(F.MAP_IN, 30, 8, loss="norm")
 
 
 def test_mapping_loss_weighs_dancers_and_groups():
-    """Per-sample weights of the mapping's loss (``train --map-reverse``: the clips
-    played backwards count for her root position only): per dancer ``(B, 2)``
-    or per dancer and group ``(B, 2, 5)``; a weight of 0 leaves that part out,
-    and the mean is over what counts. All ones is the unweighted loss."""
+    """Per-sample weights of the mapping's norm loss (the placement network's
+    recipe: on the clips played backwards only her outputs count): per dancer
+    ``(B, 2)`` or per dancer and group ``(B, 2, 5)``; a weight of 0 leaves that
+    part out, and the mean is over what counts. All ones is the unweighted
+    loss; the squared error takes no weights."""
     torch.manual_seed(0)
     m = MappingNet(F.MAP_IN, F.MAP_OUT, 8, loss="norm")
     pred, yn = torch.randn(4, F.MAP_OUT), torch.randn(4, F.MAP_OUT)
@@ -181,16 +162,19 @@ def test_mapping_loss_weighs_dancers_and_groups():
     d = torch.zeros(1, F.MAP_OUT)
     d[0, [F.FRAME_DIM * 7 + 0, F.FRAME_DIM * 7 + 1]] = torch.tensor([3.0, 4.0])  # her root position, frame 4
     zero = torch.zeros(1, F.MAP_OUT)
-    w = torch.tensor(T.REVERSE_WEIGHTS["placement"], dtype=torch.float32)[None]
-    assert m.map_loss(d, zero, w).item() == pytest.approx(5.0 / F.FUTURE, abs=1e-5)  # one of her 30 positions
+    w = torch.tensor([[1.0, 0, 0, 0, 0], [1.0, 0, 0, 0, 0]])[None]  # root positions only
+    d[0, F.FRAME_DIM * 6] = 12.0  # his root x, frame 4: counts
+    assert m.map_loss(d, zero, w).item() == pytest.approx((5.0 + 12.0) / (2 * F.FUTURE), abs=1e-5)
     d[0, F.FRAME_DIM * 6 + 5] = 10.0  # his first point, frame 4: left out
     d[0, F.FRAME_DIM * 7 + 2] = 10.0  # her heading: left out
-    assert m.map_loss(d, zero, w).item() == pytest.approx(5.0 / F.FUTURE, abs=1e-5)
+    assert m.map_loss(d, zero, w).item() == pytest.approx((5.0 + 12.0) / (2 * F.FUTURE), abs=1e-5)
     assert m.map_loss(d, zero, torch.tensor([[0.0, 1.0]])).item() == pytest.approx(
         (5.0 + 10.0) / (F.FUTURE * 5), abs=1e-5)  # all her groups: her position (5) and heading (10) count
-    mse = MappingNet(F.MAP_IN, F.MAP_OUT, 8, loss="mse")
-    assert mse.map_loss(pred, yn, torch.ones(4, 2, 5)).item() == pytest.approx(mse.map_loss(pred, yn).item(), rel=1e-6)
-    assert set(T.REVERSE_WEIGHTS) == {"placement", "follower", "both", "none"}
+    w = torch.tensor(T.REVERSE_WEIGHTS, dtype=torch.float32)[None]  # the placement network's: all hers
+    assert m.map_loss(d, zero, w).item() == pytest.approx((5.0 + 10.0) / (F.FUTURE * 5), abs=1e-5)
+    assert m.map_loss(pred, yn, torch.ones(4, 2, 5)).item() == pytest.approx(m.map_loss(pred, yn).item(), rel=1e-6)
+    with pytest.raises(ValueError, match="norm loss"):
+        MappingNet(F.MAP_IN, F.MAP_OUT, 8, loss="mse").map_loss(pred, yn, torch.ones(4, 2))
 
 
 def test_training_samples_stay_inside_train_frames(salsa_dir, clips):
@@ -220,19 +204,15 @@ def test_fit_and_val_cut_the_train_frames_only():
 
 
 def _check_float_compute(tmp_path, qpath, xb, want, float_model):
-    """The experiment's rewrite (``export --float-compute``): the same int8 weight
-    values, multiplied in float32; its metadata says so; its output as close to
-    the float network's as the int8 compute's."""
-    import shutil
-
+    """The runtime's float compute (``onnx_float``, whose reference is
+    ``export.dequantize_int8``): the same int8 weight values, multiplied in
+    float32; its output as close to the float network's as the int8 compute's."""
     path = str(tmp_path / "float_compute.onnx")
-    shutil.copy(qpath, path)
-    assert float_compute(path) == path
-    fm = onnx.load(path)
+    fm = dequantize_int8(onnx.load(qpath))
     onnx.checker.check_model(fm)
+    onnx.save(fm, path)
     ops = {n.op_type for n in fm.graph.node}
     assert "MatMulNBits" not in ops and "MatMul" in ops
-    assert {p.key: p.value for p in fm.metadata_props}["weights"] == FLOAT_COMPUTE_WEIGHTS
     # the same int8 weight values: in every block of 32 input weights, integer multiples
     # of the block's scale (its largest magnitude / 128); the float network's are not
     for W in [numpy_helper.to_array(t) for t in fm.graph.initializer if t.name.endswith("_float")]:
@@ -246,66 +226,33 @@ def _check_float_compute(tmp_path, qpath, xb, want, float_model):
     rel = np.abs(got - want).max() / np.abs(want).max()
     print(f"mapping, int8 weights multiplied in float32 vs torch: {rel:.2e}")
     assert rel < 0.01
-    with pytest.raises(ValueError, match="not an int8 network"):
-        float_compute(str(tmp_path / "mapping.onnx"))  # the float export
-
-
-def test_placement_samples_see_her_own_past_roots(clips):
-    """The placement network's input: the mapping's, then her true roots at
-    ``PLACEMENT_LAGS`` frames back in the leader's current root frame (their
-    distance is the couple's real distance on that frame); the noisy copies move
-    only that state, each sample's roots together, and keep the headings unit."""
-    c = clips[0]
-    x, y = placement_samples([c])
-    xm, ym = mapping_samples([c])
-    assert x.shape == (len(xm), F.PLACE_IN) and np.array_equal(x[:, :F.MAP_IN], xm) and np.array_equal(y, ym)
-    state = x[:, F.MAP_IN:].reshape(len(x), len(F.PLACEMENT_LAGS), 4)
-    t = np.arange(len(x))
-    for k, lag in enumerate(F.PLACEMENT_LAGS):
-        her, his = c.follower.roots[np.maximum(t - lag, 0)], c.leader.roots[t]
-        real = np.hypot(*(her[:, :2] - his[:, :2]).T)
-        assert np.allclose(np.hypot(*state[:, k, :2].T), real, atol=1e-5)
-    assert 0.3 < np.median(np.hypot(*state[:, 0, :2].T)) < 1.5  # metres: a couple, not one body
-    noisy = noisy_placement_state(x, np.random.default_rng(1), 0.4, 0.5)
-    assert np.array_equal(noisy[:, :F.MAP_IN], x[:, :F.MAP_IN])
-    moved = noisy[:, F.MAP_IN:].reshape(state.shape) - state
-    assert 0.05 < np.abs(moved[:, :, :2]).mean() < 0.4
-    # one offset per sample (plus 2 cm per root): the lags move together
-    assert np.abs(moved[:, 0, :2] - moved[:, 2, :2]).mean() < 0.05
-    heads = noisy[:, F.MAP_IN:].reshape(state.shape)[:, :, 2:]
-    assert np.allclose(np.hypot(heads[..., 0], heads[..., 1]), 1.0, atol=1e-5)
 
 
 def test_train_command_trains_and_reexports_the_placement_network(salsa_dir, tmp_path):
-    """``python -m training.train --only placement --placement-state`` (tiny
-    configuration, fit split): only ``placement.onnx`` and the report are written,
-    with its kind, the backwards recipe and the noisy copies of her placement in
-    its training figures, a note of what the runtime reads and feeds
-    (``state_lags``); its checkpoint re-exports through ``training.export`` to
-    the same network and metadata. (Without ``--placement-state``: the shipped
-    recipe, which ``models/placement.onnx`` is.)"""
+    """``python -m training.train --only placement`` (tiny configuration, fit
+    split; the shipped recipe, which ``models/placement.onnx`` is): only
+    ``placement.onnx`` and the report are written, with its kind and the
+    backwards recipe in its training figures and a note of what the runtime
+    reads; its checkpoint re-exports through ``training.export`` to the same
+    network and metadata."""
     import onnx as _onnx
 
     from training import export as X
 
     out, cache, again = tmp_path / "m", tmp_path / "cache", tmp_path / "again"
-    assert T.main(["--data", str(salsa_dir), "--config", "tiny", "--only", "placement", "--placement-state",
+    assert T.main(["--data", str(salsa_dir), "--config", "tiny", "--only", "placement",
                    "--split", "fit", "--out", str(out), "--cache", str(cache)]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["placement.onnx", "training_report.json"]
     report = json.loads((out / "training_report.json").read_text())
-    assert set(report["models"]) == {"placement"} and report["models"]["placement"]["reverse"] == "follower"
-    assert report["models"]["placement"]["timewarp"] is None  # (--placement-timewarp: not shipped)
+    assert set(report["models"]) == {"placement"} and report["overrides"] == {}
+    assert report["models"]["placement"]["reverse"] == "follower" and report["models"]["placement"]["loss"] == "norm"
     meta = {p.key: p.value for p in _onnx.load(str(out / "placement.onnx")).metadata_props}
     assert meta["kind"] == "placement" and "follower's roots" in meta["outputs"]
     assert json.loads(meta["output_keys"]) == list(range(1, F.FUTURE + 1))
     assert X.main(["--checkpoints", str(cache / "checkpoints"), "--out", str(again), "--names", "placement"]) == 0
     meta2 = {p.key: p.value for p in _onnx.load(str(again / "placement.onnx")).metadata_props}
     assert meta2["kind"] == "placement" and meta2["outputs"] == meta["outputs"]
-    assert meta2["state_lags"] == meta["state_lags"]
-    assert report["models"]["placement"]["copies"] == 2 and report["models"]["placement"]["state_noise"] == [0.4, 0.5]
-    assert json.loads(meta["state_lags"]) == list(F.PLACEMENT_LAGS) and "her roots" in meta["inputs"]
-    assert json.loads(meta["layout"])["place_in"] == F.PLACE_IN
-    x = np.random.default_rng(0).standard_normal((4, F.PLACE_IN)).astype(np.float32)
+    x = np.random.default_rng(0).standard_normal((4, F.MAP_IN)).astype(np.float32)
     a, b = (ort.InferenceSession(str(d / "placement.onnx"), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
             for d in (out, again))
     assert a.shape == (4, F.MAP_OUT) and np.allclose(a, b, atol=1e-5)

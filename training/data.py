@@ -4,13 +4,9 @@ Every sample's window lies inside one clip's train frames: the past window is
 padded by repeating the clip's first frame (as the runtime pads at start-up)
 and the future window must fit (t + 30 < n), so no sample reaches a test frame.
 
-Tracker samples are built the way the runtime feeds the tracker (see
-``runtime``): the state is the pose at frame t in the dancer's anchored root;
-key 1 (frame t + 1) is the observed input for the leader and the mapping's
-last prediction for the follower; keys k >= 2 come from the mapping network
-run on the input up to t + 1. :func:`rollout_states` then replaces the ground
-truth state by the tracker's own closed-loop poses (DAgger-style), with the
-ground truth future kept as the target.
+Tracker samples are teacher-forced: the state is the pose at frame t in the
+dancer's own root, the keys the dancer's ground-truth future (the runtime feeds
+the mapping's prediction in their place).
 """
 from __future__ import annotations
 
@@ -50,41 +46,6 @@ def mapping_samples(clips):
         xs.append(mapping_inputs(c)[t])
         ys.append(F.mapping_target(L.roots[t], L.roots[fi], _tracked(L)[fi], Fo.roots[fi], _tracked(Fo)[fi]))
     return np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32)
-
-
-def placement_samples(clips):
-    """The placement network's samples: the mapping's (:func:`mapping_samples`)
-    with her true roots at ``PLACEMENT_LAGS`` frames back (clamped at the clip's
-    start) relative to the leader's current root beside each input: ``x (n, PLACE_IN)``,
-    ``y (n, MAP_OUT)``. Clean: :func:`noisy_placement_state` perturbs them."""
-    x, y = mapping_samples(clips)
-    states = []
-    for c in clips:
-        if c.follower is None:
-            continue
-        t = sample_times(c.n_frames)
-        lag = np.maximum(t[:, None] - np.array(F.PLACEMENT_LAGS)[None], 0)
-        states.append(F.placement_state(c.leader.roots[t], c.follower.roots[lag]))
-    return np.concatenate([x, np.concatenate(states).astype(np.float32)], axis=1), y
-
-
-def noisy_placement_state(x, rng, position_sd, heading_sd, jitter_sd=0.02):
-    """A copy of placement inputs ``x (n, PLACE_IN)`` whose state (her past roots)
-    is moved as a whole by a random offset and turn (each sample a uniform share of
-    ``position_sd`` m and ``heading_sd`` rad, from clean to the full draw), plus
-    ``jitter_sd`` m of noise per root: at run time the state is her own placement,
-    never her true one, and the network must read the leader's lead beside it."""
-    x = np.array(x, dtype=np.float32, copy=True)
-    n, k = len(x), len(F.PLACEMENT_LAGS)
-    s = x[:, F.MAP_IN:].reshape(n, k, 4).astype(np.float64)
-    share = rng.uniform(0.0, 1.0, (n, 1))
-    s[:, :, :2] += (rng.normal(0.0, position_sd, (n, 2)) * share)[:, None]
-    s[:, :, :2] += rng.normal(0.0, jitter_sd, (n, k, 2))
-    turn = rng.normal(0.0, heading_sd, (n, 1)) * share
-    c, si = s[:, :, 2].copy(), s[:, :, 3].copy()
-    s[:, :, 2], s[:, :, 3] = c * np.cos(turn) - si * np.sin(turn), si * np.cos(turn) + c * np.sin(turn)
-    x[:, F.MAP_IN:] = s.reshape(n, -1)
-    return x
 
 
 def _duet_frames(clips, target):
@@ -141,20 +102,10 @@ def floor_levels_of(clips, role: str) -> list:
     return [round(float(v), 5) for v in np.median(levels, axis=0)]
 
 
-def mapping_predictions(clip, mapping_fn):
-    """The mapping network's output at every frame τ of a clip, decoded: per
-    dancer, world roots ``(n, FUTURE, 4)`` and own-root tracked points of frames
-    τ+1 … τ+30."""
-    y = mapping_fn(mapping_inputs(clip).astype(np.float32)).astype(np.float64)
-    return F.decode_mapping(y, clip.leader.roots)
-
-
-def tracking_samples(clips, role: str, past_input: bool = False, mapping_fn=None):
+def tracking_samples(clips, role: str, past_input: bool = False):
     """Tracker samples of one dancer (``role`` 'leader' or 'follower').
 
-    Without ``mapping_fn`` the keys are the ground truth future (teacher
-    forcing). With it, keys are what the runtime feeds (see the module doc) and
-    the follower's root is anchored to the mapping's prediction.
+    The keys are the ground truth future (teacher forcing).
     ``past_input`` builds ablation (b): the key slots carry the dancer's *past*
     three-point trajectory (frames t + 1 − k) and no mapping is used.
     Returns ``x, y`` and the (clip index, t) of every sample.
@@ -174,23 +125,8 @@ def tracking_samples(clips, role: str, past_input: bool = False, mapping_fn=None
         if past_input:
             src = F.window_indices(t + 1, n, 1 - keys)
             key_roots, key_tr = d.roots[src], to_local(_tracked(d)[src], d.roots[src])
-        elif mapping_fn is None:
-            key_roots, key_tr = d.roots[ki], to_local(_tracked(d)[ki], d.roots[ki])
         else:
-            who = 0 if role == "leader" else 1
-            roots, tr = mapping_predictions(c, mapping_fn)[who]
-            nxt = np.minimum(t + 1, n - 1)
-            key_roots = np.empty((len(t), len(keys), 4))
-            key_tr = np.empty((len(t), len(keys), 3, 3))
-            key_roots[:, 1:] = roots[nxt][:, keys[1:] - 2]
-            key_tr[:, 1:] = tr[nxt][:, keys[1:] - 2]
-            if role == "leader":  # key 1 is the observed input
-                key_roots[:, 0] = d.roots[t + 1]
-                key_tr[:, 0] = to_local(_tracked(d)[t + 1], d.roots[t + 1])
-            else:  # the mapping's previous prediction of frame t + 1; F0 its prediction of t
-                key_roots[:, 0], key_tr[:, 0] = roots[t, 0], tr[t, 0]
-                prev = np.maximum(t - 1, 0)
-                f0 = np.where((t > 0)[:, None], roots[prev, 0], d.roots[t])
+            key_roots, key_tr = d.roots[ki], to_local(_tracked(d)[ki], d.roots[ki])
         pos_l = to_local(d.positions[t], f0)
         rot_l = rot_to_local(d.rotations[t], f0)
         pose = F.pose_features(pos_l, rot_l, d.contacts[t])
@@ -199,66 +135,6 @@ def tracking_samples(clips, role: str, past_input: bool = False, mapping_fn=None
         where.append(np.stack([np.full(len(t), ci), t], axis=1))
     return (np.concatenate(xs).astype(np.float32), np.concatenate(ys).astype(np.float32),
             np.concatenate(where))
-
-
-def next_pose_features(y_key1: np.ndarray) -> np.ndarray:
-    """The runtime's next state from a tracker's first output key: its pose block
-    with the 6D rotations orthonormalised and contacts clipped (batched)."""
-    from dancing_points_addon.representation import rot6d, rot6d_to_matrix
-
-    n = len(y_key1)
-    pos = y_key1[:, F.KEY_POS]
-    rot = rot6d(rot6d_to_matrix(y_key1[:, F.KEY_ROT].reshape(n, F.N_JOINTS, 6).astype(np.float64)))
-    con = np.clip(y_key1[:, F.KEY_CON], 0.0, 1.0)
-    return np.concatenate([pos, rot.reshape(n, -1), con], axis=1).astype(np.float32)
-
-
-def rollout_states(model_fn, x, where, steps=10, stride=2, record=(2, 5, 10)):
-    """Closed-loop states: from every ``stride``-th sample, roll the tracker
-    ``steps`` frames forward on the samples' own key inputs (anchored roots), and
-    return the sample indices and the rolled-out pose features at ``record`` steps.
-
-    With the roots anchored, a rolled-out sample differs from its ground-truth
-    sample only in the pose block, so its target stays the ground truth's.
-    """
-    starts = np.arange(0, len(x), stride)
-    state = x[starts, :F.POSE_DIM].copy()
-    idx_out, pose_out = [], []
-    for j in range(1, steps + 1):
-        cur = starts + j - 1
-        ok = (cur < len(x))
-        ok[ok] &= (where[cur[ok], 0] == where[starts[ok], 0]) & (where[cur[ok], 1] == where[starts[ok], 1] + j - 1)
-        starts, state, cur = starts[ok], state[ok], cur[ok]
-        if len(starts) == 0:
-            break
-        xin = x[cur].copy()
-        xin[:, :F.POSE_DIM] = state
-        y = model_fn(xin)
-        state = next_pose_features(y[:, :F.KEY_OUT])
-        nxt = cur + 1
-        ok2 = nxt < len(x)
-        ok2[ok2] &= (where[nxt[ok2], 0] == where[cur[ok2], 0]) & (where[nxt[ok2], 1] == where[cur[ok2], 1] + 1)
-        if j in record:
-            idx_out.append(nxt[ok2])
-            pose_out.append(state[ok2])
-    return np.concatenate(idx_out), np.concatenate(pose_out)
-
-
-def time_warp(clips, rates):
-    """Duet clips replayed at other speeds (``rate`` source frames per output
-    frame: 1.1 is 10 % faster), by the runtime's resampling (positions linear,
-    rotations by slerp); root frames and contacts derived again. For the
-    mapping network: partners dance the same figures to other tempi."""
-    from training.dataset import Clip, Dancer
-    from dancing_points_addon.resample import resample_motion
-    from dancing_points_addon.skeleton import Motion
-
-    def warp(d, rate):  # the frames read as if sampled at rate × 30 Hz, resampled to 30 Hz
-        m = resample_motion(Motion(d.positions, d.rotations, F.FPS * rate, np.zeros((31, 3))), F.FPS)
-        return Dancer.from_arrays(m.positions, m.rotations, F.FPS)
-
-    return [Clip(f"{c.name}x{r:g}", warp(c.leader, r), warp(c.follower, r), c.mirrored)
-            for c in clips if c.follower is not None for r in rates]
 
 
 def time_reverse(clips):

@@ -16,14 +16,10 @@ Re-export from the training checkpoints (no retraining):
     python -m training.export --checkpoints cache/checkpoints --out models
 
 Weights are int8 (symmetric, blocks of 32 input weights), run by
-onnxruntime's ``MatMulNBits``, which also quantises each layer's input. For an
-experiment (issue 13: is the input quantisation what amplifies a millimetre of
-tracker noise?), an int8 file can be rewritten in place with the same weight
-values multiplied in float32, without its checkpoint (measured for the
-mapping and not taken, see models/README.md). On a copy:
-
-    mkdir -p cache/fc && cp models/*.onnx cache/fc/
-    python -m training.export --float-compute cache/fc/mapping.onnx
+onnxruntime's ``MatMulNBits``, which also quantises each layer's input; the
+runtime multiplies the same weight values in float32 instead
+(``dancing_points_addon.onnx_float``, of which :func:`dequantize_int8` is the
+reference, written with the ``onnx`` package).
 """
 from __future__ import annotations
 
@@ -43,8 +39,6 @@ OPSET = 17
 WEIGHTS = ("int8", "fp32")
 INT8_BLOCK = 32
 INT8_WEIGHTS = f"int8, symmetric, blocks of {INT8_BLOCK} (MatMulNBits, accuracy level 4: int8 compute)"
-FLOAT_COMPUTE_WEIGHTS = (f"int8 values, symmetric, blocks of {INT8_BLOCK}, stored and multiplied as float32 "
-                         "(the layer inputs are not quantised)")
 
 
 def tracker_keep() -> np.ndarray:
@@ -149,27 +143,6 @@ def dequantize_int8(m: onnx.ModelProto) -> onnx.ModelProto:
     return _rewrite(m, "MatMulNBits", rewrite)
 
 
-def float_compute(path: str) -> str:
-    """Rewrite the int8 ONNX file ``path`` in place (atomically) with its weights
-    multiplied in float32 (:func:`dequantize_int8`), its metadata kept but for
-    ``weights``."""
-    m = onnx.load(path)
-    meta = {p.key: p.value for p in m.metadata_props}
-    if meta.get("weights") == FLOAT_COMPUTE_WEIGHTS:
-        return path
-    if not meta.get("weights", "").startswith("int8"):
-        raise ValueError(f"{path}: not an int8 network (weights: {meta.get('weights')!r})")
-    m = dequantize_int8(m)
-    onnx.checker.check_model(m)
-    for p in m.metadata_props:
-        if p.key == "weights":
-            p.value = FLOAT_COMPUTE_WEIGHTS
-    tmp = path + ".tmp"
-    onnx.save(m, tmp)
-    os.replace(tmp, path)
-    return path
-
-
 def export(model: nn.Module, kind: str, path: str, n_in: int, extra: dict | None = None,
            weights: str = "int8"):
     """Write ``model`` (eval mode, CPU) as ONNX at ``path`` atomically; ``weights``:
@@ -224,16 +197,9 @@ def main(argv=None):
                     help="checkpoints to export (e.g. vanilla_leader,pastinput_follower for the ablations)")
     ap.add_argument("--weights", choices=WEIGHTS, default="int8",
                     help="int8: quantised weights, int8 compute (shipped); fp32: the exact float graph")
-    ap.add_argument("--float-compute", nargs="+", default=None, metavar="FILE",
-                    help="an experiment: rewrite these int8 ONNX files in place with their weights "
-                         "multiplied in float32 (no checkpoint needed), then stop")
     ap.add_argument("--default-pose-from", default=None, metavar="DATA",
                     help="recompute the trackers' start-up pose from this data's unmirrored train split")
     args = ap.parse_args(argv)
-    if args.float_compute:
-        for path in args.float_compute:
-            print("float compute:", float_compute(path))
-        return 0
     os.makedirs(args.out, exist_ok=True)
     report = {}
     rp = os.path.join(args.out, "training_report.json")
@@ -245,8 +211,7 @@ def main(argv=None):
         ck = torch.load(os.path.join(args.checkpoints, f"{name}.pt"), weights_only=False)
         meta = dict(ck["meta"])
         if name in WHOLE_FUTURE:
-            n_in = F.PLACE_IN if "state_lags" in meta else F.MAP_IN  # (her own placement beside the lead)
-            m, kind = MappingNet(n_in, F.MAP_OUT, meta["hidden"]), name
+            m, n_in, kind = MappingNet(F.MAP_IN, F.MAP_OUT, meta["hidden"]), F.MAP_IN, name
         elif name == "contacts":
             m, n_in, kind = ContactNet(F.MAP_IN, hidden=meta["hidden"], layers=meta["layers"]), F.MAP_IN, "contacts"
         elif name == "pose_anchor":
@@ -257,8 +222,7 @@ def main(argv=None):
         else:
             role = meta.get("role") or name.rsplit("_", 1)[1]
             cls = VanillaTracker if meta.get("ablation") == "a" else TrackingNet
-            kw = {"decoder_input": meta["decoder_input"]} if "decoder_input" in meta else {}
-            m, n_in, kind = cls(F.TRACK_IN, F.TRACK_OUT, meta["hidden"], pose_dim=F.POSE_DIM, **kw), F.TRACK_IN, \
+            m, n_in, kind = cls(F.TRACK_IN, F.TRACK_OUT, meta["hidden"], pose_dim=F.POSE_DIM), F.TRACK_IN, \
                 f"tracker_{role}"
             meta["role"] = role
             if args.default_pose_from:

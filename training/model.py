@@ -65,22 +65,16 @@ class _Net(nn.Module):
     """Normalisation, optional residual target, input noise; subclasses define
     ``_loss(xn, yn)`` and ``_predict(xn)`` in normalised space."""
 
-    def __init__(self, n_in, n_out, noise=0.1, pose_dim=None, pose_noise=0.0, l2_loss=False):
+    def __init__(self, n_in, n_out, noise=0.1, pose_dim=None, pose_noise=0.0):
         super().__init__()
         self.nx, self.ny = Normalizer(n_in), Normalizer(n_out)
         self.n_out = n_out
         self.noise = noise
         self.pose_dim = pose_dim
         self.pose_noise = pose_noise
-        # True: the paper's losses, the per-sample Euclidean norm (not squared;
-        # the reconstruction's divided by sqrt(dim), a per-sample RMS)
-        self.l2_loss = bool(l2_loss)
 
     def _rec(self, pred, target):
-        d = pred - target
-        if self.l2_loss:
-            return ((d ** 2).mean(-1) + 1e-12).sqrt().mean()
-        return (d ** 2).mean()
+        return ((pred - target) ** 2).mean()
 
     def _base(self, x):
         return pose_base(x, self.n_out, self.pose_dim) if self.pose_dim else 0.0
@@ -154,11 +148,11 @@ class _Net(nn.Module):
 class MappingNet(_Net):
     """Leader's past 0.5 s of three points -> both dancers' future 1 s."""
 
-    # loss on the normalised outputs: "mse" (squared error: the conditional mean), "l1"
-    # (absolute error: a per-coordinate median) or "norm" (the Euclidean norm of each
-    # frame's position, heading and tracked point per dancer, unsquared: a geometric median,
-    # what a mean distance rewards)
-    LOSSES = ("mse", "l1", "norm")
+    # loss on the normalised outputs: "mse" (squared error: the conditional mean; the pose
+    # anchor's) or "norm" (the Euclidean norm of each frame's position, heading and tracked
+    # point per dancer, unsquared: a geometric median, what a mean distance rewards; the
+    # mapping's and the placement network's)
+    LOSSES = ("mse", "norm")
 
     def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, dropout=0.1, loss="mse"):
         super().__init__(n_in, n_out, noise)
@@ -177,22 +171,22 @@ class MappingNet(_Net):
 
     def map_loss(self, pred, yn, w=None):
         """The loss of normalised predictions ``pred`` against targets ``yn``;
-        ``w``: each sample's weights of the leader's and of the follower's outputs
-        (frames alternate leader, follower), ``(B, 2)``, or per group of
-        :data:`GROUPS`, ``(B, 2, 5)``; None: all alike."""
-        if w is None and self.loss_kind != "norm":  # (any output size: the pose anchor's too)
-            return (pred - yn).abs().mean() if self.loss_kind == "l1" else self._rec(pred, yn)
+        ``w`` (the norm loss only): each sample's weights of the leader's and of the
+        follower's outputs (frames alternate leader, follower), ``(B, 2)``, or per
+        group of :data:`GROUPS`, ``(B, 2, 5)``; None: all alike."""
+        if self.loss_kind != "norm":  # (any output size: the pose anchor's)
+            if w is not None:
+                raise ValueError("per-sample weights need the norm loss")
+            return self._rec(pred, yn)
         frames = self.n_out // F.FRAME_DIM
         d = (pred - yn).view(-1, frames, F.FRAME_DIM)
-        if w is not None:  # (B, frames, groups): each frame-dancer-group's weight
-            w = w[:, :, None].expand(-1, -1, len(self.GROUPS)) if w.dim() == 2 else w
-            w = w[:, torch.arange(frames, device=w.device) % 2]
-        if self.loss_kind == "norm":
-            norms = torch.stack([((d[..., a:b] ** 2).sum(-1) + 1e-12).sqrt() for a, b in self.GROUPS], -1)
-            return norms.mean() if w is None else (norms * w).sum() / w.sum().clamp_min(1e-12)
-        err = d.abs() if self.loss_kind == "l1" else d ** 2
-        we = torch.cat([w[..., g:g + 1].expand(-1, -1, b - a) for g, (a, b) in enumerate(self.GROUPS)], -1)
-        return (err * we).sum() / we.sum().clamp_min(1e-12)
+        norms = torch.stack([((d[..., a:b] ** 2).sum(-1) + 1e-12).sqrt() for a, b in self.GROUPS], -1)
+        if w is None:
+            return norms.mean()
+        # (B, frames, groups): each frame-dancer-group's weight
+        w = w[:, :, None].expand(-1, -1, len(self.GROUPS)) if w.dim() == 2 else w
+        w = w[:, torch.arange(frames, device=w.device) % 2]
+        return (norms * w).sum() / w.sum().clamp_min(1e-12)
 
     def _predict(self, xn):
         return self.net(xn)
@@ -265,7 +259,7 @@ class HipHeadingNet(ContactNet):
     *relative to his root's heading* at the current frame over
     ``follower.HIP_BINS`` bins of the full turn, ``(B, HIP_BINS)`` (softmax in the
     graph). Cross-entropy on one-hot targets. The runtime turns her hips towards
-    the bins' circular mean (``FollowerOptions.hip_source``): a heading read from
+    the bins' circular mean (``FollowerOptions.hip_twist``): a heading read from
     bins copes with the spins, where a regressed one averages a turn away."""
 
     def __init__(self, n_in, n_out=HIP_BINS, hidden=512, layers=3, noise=0.05, dropout=0.2):
@@ -290,22 +284,16 @@ class TrackingNet(_Net):
     """
 
     def __init__(self, n_in, n_out, hidden, layers=6, channels=16, width=32, noise=0.1, pose_dim=None,
-                 pose_noise=0.0, decoder_input=True, match_detach=False, estimator_rec=0.0, l2_loss=False):
-        super().__init__(n_in, n_out, noise, pose_dim, pose_noise, l2_loss)
+                 pose_noise=0.0):
+        super().__init__(n_in, n_out, noise, pose_dim, pose_noise)
         self.channels, self.width = channels, width
-        self.decoder_input = bool(decoder_input)  # False: the paper's decoder, fed the latent alone
-        # True: L_matching trains the estimator only (the encoder's latent is its
-        # target), so matching cannot pull the encoder towards what x alone gives
-        self.match_detach = bool(match_detach)
-        # > 0: also reconstruct through the inference path D(S(x)), with this weight
-        self.estimator_rec = float(estimator_rec)
         z = channels * width
         self.estimator = mlp(n_in, z, hidden, layers)
         self.encoder = mlp(n_in + n_out, z, hidden, layers)
-        self.decoder = mlp(z + (n_in if self.decoder_input else 0), n_out, hidden, layers)
+        self.decoder = mlp(z + n_in, n_out, hidden, layers)
 
     def _decode(self, z, xn):
-        return self.decoder(torch.cat([z, xn], dim=-1) if self.decoder_input else z)
+        return self.decoder(torch.cat([z, xn], dim=-1))
 
     def _latent(self, h):
         return torch.softmax(h.view(-1, self.channels, self.width), dim=-1).view(-1, self.channels * self.width)
@@ -314,12 +302,8 @@ class TrackingNet(_Net):
         z_e = self._latent(self.encoder(torch.cat([xn, yn], dim=-1)))
         z_s = self._latent(self.estimator(xn))
         rec = self._rec(self._decode(z_e, xn), yn)
-        m2 = (((z_e.detach() if self.match_detach else z_e) - z_s) ** 2).sum(-1)
-        match = (m2 + 1e-12).sqrt().mean() if self.l2_loss else m2.mean()
-        out = {"rec": rec, "match": match}
-        if self.estimator_rec > 0:
-            out["rec_s"] = self.estimator_rec * self._rec(self._decode(z_s, xn), yn)
-        return out
+        match = ((z_e - z_s) ** 2).sum(-1).mean()
+        return {"rec": rec, "match": match}
 
     def _predict(self, xn):
         return self._decode(self._latent(self.estimator(xn)), xn)
@@ -334,8 +318,8 @@ class TrackingNet(_Net):
 class VanillaTracker(_Net):
     """Ablation (a): encoder and decoder stacked as one MLP, no latent, L_rec only."""
 
-    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, pose_dim=None, pose_noise=0.0, l2_loss=False):
-        super().__init__(n_in, n_out, noise, pose_dim, pose_noise, l2_loss)
+    def __init__(self, n_in, n_out, hidden, layers=6, noise=0.1, pose_dim=None, pose_noise=0.0):
+        super().__init__(n_in, n_out, noise, pose_dim, pose_noise)
         self.net = nn.Sequential(mlp(n_in, hidden, hidden, layers), nn.ELU(), mlp(hidden, n_out, hidden, layers))
 
     def _loss(self, xn, yn):

@@ -33,8 +33,7 @@ from dancing_points_addon.nets import MODEL_FILES
 from training.dataset import load_clips, swap_roles
 
 from .data import (anchor_samples, contact_samples, default_pose, device_offset_clips, floor_levels_of,
-                   hip_heading_samples, mapping_samples, noisy_placement_state, placement_samples, rollout_states, time_reverse,
-                   time_warp, tracking_samples)
+                   hip_heading_samples, mapping_samples, time_reverse, tracking_samples)
 from .export import export
 from .model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
@@ -44,15 +43,14 @@ def save_checkpoint(model, path, meta):
     torch.save({"state_dict": model.state_dict(), "meta": meta}, path)
 
 
-def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None, seed=0, refit=True,
-                weight_decay=1e-4, w=None):
+def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None, seed=0, weight_decay=1e-4,
+                w=None):
     """``w``: per-sample loss weights passed to ``model.loss`` (the mapping's per
     dancer, ``(n, 2)``), or None."""
     torch.manual_seed(seed)
     xt, yt = torch.from_numpy(x), torch.from_numpy(y)
     wt = None if w is None else torch.from_numpy(np.asarray(w, dtype=np.float32)).to(device)
-    if refit:  # normalisation statistics of the (train split) samples
-        model.fit_normalizers(xt, yt)
+    model.fit_normalizers(xt, yt)  # normalisation statistics of the (train split) samples
     model.to(device)
     xt, yt = xt.to(device), yt.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
@@ -86,30 +84,29 @@ def train_model(model, x, y, epochs, batch=256, lr=1e-3, device="cpu", log=None,
             "samples": int(len(xt))}
 
 
-# the mapping's loss weights, per dancer (leader, follower) and output group (root position,
-# heading, three points: ``MappingNet.GROUPS``), on the clips played backwards (``--map-reverse``)
-REVERSE_WEIGHTS = {"placement": [[0, 0, 0, 0, 0], [1, 0, 0, 0, 0]], "follower": [[0] * 5, [1] * 5],
-                   "both": [[1] * 5, [1] * 5], "none": [[0] * 5, [0] * 5]}
+# the placement network's loss weights on the clips played backwards, per dancer (leader,
+# follower) and output group (root position, heading, three points: ``MappingNet.GROUPS``):
+# only her outputs count
+REVERSE_WEIGHTS = [[0] * 5, [1] * 5]
 
 # what ``--only`` names for the shipped networks: the runtime's kinds
 SHIPPED = tuple(MODEL_FILES)
 
 CONFIGS = {
     # hidden units, epochs
-    # Teacher-forced ground-truth keys, no rollout stage; current-pose noise
+    # Teacher-forced ground-truth keys; current-pose noise
     # (standard deviation up to 0.3 units) for the leader's trackers only: chosen per dancer on
     # the val frames (train --split fit, evaluate --split val; the comparison
     # is in models/README.md). The ablations get their dancer's settings.
     "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 60,
-             "pose_noise": {"leader": 0.3, "follower": 0.0}, "runtime_keys": False, "rollout_steps": 20,
-             "rollout_epochs": 0,
+             "pose_noise": {"leader": 0.3, "follower": 0.0},
              "contacts": {"hidden": 256, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2},
              "anchor": {"hidden": 512, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2},
              # her hip heading over bins (chosen on val: open-loop 39-41 degrees off her hips against
              # 42-43 for 256 units or 30 epochs)
              "hip": {"hidden": 512, "layers": 3, "epochs": 60, "noise": 0.05, "dropout": 0.2}},
     "tiny": {"map_hidden": 32, "map_epochs": 1, "track_hidden": 32, "track_epochs": 1,
-             "pose_noise": 0.3, "runtime_keys": True, "rollout_steps": 4, "rollout_epochs": 1,
+             "pose_noise": 0.3,
              "contacts": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2},
              "anchor": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2},
              "hip": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2}},
@@ -138,48 +135,12 @@ def main(argv=None):
     ap.add_argument("--map-epochs", type=int, default=None)
     ap.add_argument("--map-hidden", type=int, default=None, help="mapping hidden units (default: the config's)")
     ap.add_argument("--map-wd", type=float, default=None, help="mapping AdamW weight decay (default 1e-4)")
-    ap.add_argument("--map-loss", choices=MappingNet.LOSSES, default="norm",
-                    help="mapping loss on the normalised outputs: norm (shipped: each frame's position, heading "
-                         "and tracked point per dancer, unsquared), mse (the earlier recipe) or l1")
-    ap.add_argument("--map-reverse", choices=tuple(REVERSE_WEIGHTS), default="none",
-                    help="mapping: also train on the clips played backwards, their loss on the follower's root "
-                         "positions only (placement), on all the follower's outputs (follower), on both dancers' "
-                         "(both), or not at all (none, shipped: see models/README.md)")
-    ap.add_argument("--placement-reverse", choices=tuple(REVERSE_WEIGHTS), default="follower",
-                    help="the placement network (the mapping's recipe, her roots read from it): the clips played "
-                         "backwards weighted as --map-reverse's choices (default follower, shipped)")
-    ap.add_argument("--placement-state", action="store_true",
-                    help="the placement network also sees her own placement (her roots at features.PLACEMENT_LAGS "
-                         "frames back; measured, not shipped: models/README.md)")
-    ap.add_argument("--placement-state-noise", default="0.4,0.5",
-                    help="with --placement-state: the largest offset (m) and turn (rad) of the noisy copies of her "
-                         "placement it sees (each sample a uniform share of a draw)")
-    ap.add_argument("--placement-copies", type=int, default=2,
-                    help="with --placement-state: noisy copies of the samples (its epochs divided by as many)")
-    ap.add_argument("--placement-timewarp", default=None,
-                    help="the placement network: also on the clips replayed at these speeds, each also played "
-                         "backwards, e.g. 0.9,1.1 (measured, not shipped: docs/experiments.md)")
-    ap.add_argument("--map-timewarp", default=None,
-                    help="mapping: also train on the clips replayed at these speeds, e.g. 0.9,1.1")
-    ap.add_argument("--paper-decoder", action="store_true",
-                    help="trackers' decoder fed the latent alone (the paper's), not the latent and the input")
-    ap.add_argument("--match-detach", action="store_true",
-                    help="trackers' L_matching trains the estimator only (stop-gradient on the encoder's latent)")
-    ap.add_argument("--estimator-rec", type=float, default=0.0,
-                    help="weight of a second L_rec through the inference path D(S(x)) (default 0: off)")
     ap.add_argument("--track-epochs", type=int, default=None)
     ap.add_argument("--pose-noise", type=float, default=None,
                     help="trackers (both dancers): perturb the current-pose input with Gaussian noise of a "
                          "standard deviation up to this many POSE_NOISE_UNITS (default: the config's, per dancer)")
     ap.add_argument("--roles", default="leader,follower",
                     help="comma list of dancers whose trackers (and ablations) to train (default: both)")
-    ap.add_argument("--runtime-keys", action="store_true",
-                    help="trackers: train on the keys the runtime feeds (the mapping's predictions), not the "
-                         "ground-truth future; needs OUT/mapping.onnx")
-    ap.add_argument("--rollout-epochs", type=int, default=None,
-                    help="trackers: epochs of a second stage on their own closed-loop states (DAgger-style)")
-    ap.add_argument("--l2-loss", action="store_true",
-                    help="trackers (and ablation (a)) trained with the paper's unsquared L2 losses")
     ap.add_argument("--tracked", choices=("leader", "follower"), default="leader",
                     help="whose three points the networks read: the leader's (models/, the default) or the "
                          "follower's (role reversal, models/follower/: the clips' dancers swapped, so the "
@@ -208,10 +169,6 @@ def main(argv=None):
     cfg = dict(CONFIGS[args.config])
     if args.pose_noise is not None:
         cfg["pose_noise"] = args.pose_noise
-    if args.runtime_keys:
-        cfg["runtime_keys"] = True
-    if args.rollout_epochs is not None:
-        cfg["rollout_epochs"] = args.rollout_epochs
     os.makedirs(args.out, exist_ok=True)
     log = lambda s: print(s, flush=True)  # noqa: E731
     t_all = time.time()
@@ -248,58 +205,41 @@ def main(argv=None):
         split_meta["data_split"] = ("CMU salsa takes 01-13 at 30 Hz, the first 80% of each take's train frames "
                                     "(split 'fit', for comparing recipes); mirror augmented")
 
-    def mapping_like(name, reverse, timewarp):
+    def mapping_like(name):
         """The mapping network (``name`` mapping), or the placement network (the
         same network and recipe, also trained on the clips played backwards with
-        the loss on the follower's outputs: ``placement``)."""
-        map_clips = input_clips
-        if timewarp:
-            map_clips = clips + time_warp(clips, [float(r) for r in timewarp.split(",")])
-        samples = placement_samples if name == "placement" and args.placement_state else mapping_samples
-        x, y = samples(map_clips)
+        the loss on the follower's outputs only: ``placement``)."""
+        x, y = mapping_samples(input_clips)
         w = None
-        if reverse != "none":  # the clips played backwards, their outputs' groups weighted 0 or 1
-            xr, yr = samples(time_reverse(map_clips))
+        if name == "placement":  # the clips played backwards, only her outputs counting
+            xr, yr = mapping_samples(time_reverse(input_clips))
             w = np.ones((len(x) + len(xr), 2, len(MappingNet.GROUPS)), dtype=np.float32)
-            w[len(x):] = REVERSE_WEIGHTS[reverse]
+            w[len(x):] = REVERSE_WEIGHTS
             x, y = np.concatenate([x, xr]), np.concatenate([y, yr])
-        copies, state_noise = 1, None
-        if name == "placement" and args.placement_state:  # her own placement beside the lead, noisy copies
-            copies = args.placement_copies
-            state_noise = [float(v) for v in args.placement_state_noise.split(",")]
-            rng = np.random.default_rng(args.seed)
-            x = np.concatenate([noisy_placement_state(x, rng, *state_noise) for _ in range(copies)])
-            y = np.concatenate([y] * copies)
-            w = None if w is None else np.concatenate([w] * copies)
         log(f"{name}: {x.shape} -> {y.shape}")
         noise = 0.1 if args.map_noise is None else args.map_noise
         dropout = 0.1 if args.map_dropout is None else args.map_dropout
-        epochs = max(1, (args.map_epochs or cfg["map_epochs"]) // (copies * input_copies))  # the same steps
+        epochs = max(1, (args.map_epochs or cfg["map_epochs"]) // input_copies)  # the same steps
         hidden = args.map_hidden or cfg["map_hidden"]
         wd = 1e-4 if args.map_wd is None else args.map_wd
-        n_in = x.shape[1]
-        m = MappingNet(n_in, F.MAP_OUT, hidden, noise=noise, dropout=dropout, loss=args.map_loss)
+        m = MappingNet(F.MAP_IN, F.MAP_OUT, hidden, noise=noise, dropout=dropout, loss="norm")
         info = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed, weight_decay=wd, w=w)
-        info.update(noise=noise, dropout=dropout, weight_decay=wd, timewarp=timewarp, loss=args.map_loss,
-                    reverse=reverse)
+        info.update(noise=noise, dropout=dropout, weight_decay=wd, loss="norm",
+                    reverse="follower" if name == "placement" else "none")
         extra = {}
         if name == "placement":
-            info.update(copies=copies, state_noise=state_noise)
             extra = {"outputs": "the mapping's layout; the runtime reads the follower's roots (position, heading) "
                                 "only"}
-            if args.placement_state:  # (the runtime feeds her own roots when it finds state_lags)
-                extra.update(inputs="the mapping's input, then her roots at state_lags frames back relative to the "
-                                    "leader's current root", state_lags=list(F.PLACEMENT_LAGS))
-        export(m, name, os.path.join(args.out, f"{name}.onnx"), n_in,
+        export(m, name, os.path.join(args.out, f"{name}.onnx"), F.MAP_IN,
                {"hidden": hidden, "train": info, **extra, **split_meta}, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"),
                         {"hidden": hidden, **extra, **split_meta})
         report["models"][name] = info
 
     if "mapping" in only:
-        mapping_like("mapping", args.map_reverse, args.map_timewarp)
+        mapping_like("mapping")
     if "placement" in only:  # her placement: where she stands and faces (models/README.md)
-        mapping_like("placement", args.placement_reverse, args.placement_timewarp)
+        mapping_like("placement")
 
     def input_net(key, cls, samples, kind, name, extra):
         """A small network on the mapping's input (the contact network, the pose
@@ -328,49 +268,16 @@ def main(argv=None):
         input_net("hip", HipHeadingNet, hip_heading_samples, "hip_heading", "hip_heading",
                   {"outputs": f"the follower's hip heading relative to the leader's root heading: the probabilities "
                               f"of {HIP_BINS} bins, bin k from -pi + 2 pi k / {HIP_BINS}", "bins": HIP_BINS})
-    mapping_fn = None
-    if cfg["runtime_keys"] and only & {"leader", "follower", "vanilla"}:
-        from dancing_points_addon.nets import OnnxNet
-        mapping_fn = OnnxNet(os.path.join(args.out, "mapping.onnx"), threads=max(1, torch.get_num_threads()))
 
     def tracker(cls, role, name, out_path, past_input=False, extra=None):
-        """Train a tracker on teacher-forced samples (keys: the ground-truth future,
-        or with ``runtime_keys`` what the runtime feeds); with ``rollout_epochs``
-        a second stage adds the model's own closed-loop states (DAgger-style)."""
-        keys_fn = mapping_fn if cfg["runtime_keys"] and not past_input else None
-        x, y, where = tracking_samples(clips, role, past_input=past_input, mapping_fn=keys_fn)
+        """Train a tracker on teacher-forced samples (keys: the ground-truth future)."""
+        x, y, where = tracking_samples(clips, role, past_input=past_input)
         log(f"{name}: {x.shape} -> {y.shape}")
-        kw = {"l2_loss": True} if args.l2_loss else {}
-        if cls is TrackingNet:
-            if args.paper_decoder:
-                kw["decoder_input"] = False
-            if args.match_detach:
-                kw["match_detach"] = True
-            if args.estimator_rec:
-                kw["estimator_rec"] = args.estimator_rec
         pose_noise = cfg["pose_noise"][role] if isinstance(cfg["pose_noise"], dict) else cfg["pose_noise"]
-        m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=pose_noise, **kw)
+        m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=pose_noise)
         info1 = train_model(m, x, y, args.track_epochs or cfg["track_epochs"], device=device, log=log, seed=args.seed)
         info = {"stage1": info1, "seconds": info1["seconds"]}
-        if cfg["rollout_epochs"]:
-            m.cpu()
-
-            def run(xb):
-                with torch.no_grad():
-                    return torch.cat([m(torch.from_numpy(xb[i:i + 4096])) for i in range(0, len(xb), 4096)]).numpy()
-
-            steps = cfg["rollout_steps"]
-            idx, poses = rollout_states(run, x, where, steps=steps, stride=2,
-                                        record=(steps // 4, steps // 2, steps))
-            xr = x[idx].copy()
-            xr[:, :F.POSE_DIM] = poses
-            log(f"  rollout states: {len(idx)}; mean pose drift "
-                f"{float(np.abs(poses[:, F.POSE_POS] - x[idx, F.POSE_POS]).mean()) * 100:.2f} cm per coordinate")
-            x2, y2 = np.concatenate([x, xr]), np.concatenate([y, y[idx]])
-            info2 = train_model(m, x2, y2, cfg["rollout_epochs"], device=device, log=log, seed=args.seed + 1,
-                                refit=False)  # keep stage 1's normalisation: the weights were trained on it
-            info.update(stage2=info2, seconds=info1["seconds"] + info2["seconds"])
-        meta = {"hidden": cfg["track_hidden"], "role": role, "pose_noise": pose_noise, "train": info, **split_meta, **kw,
+        meta = {"hidden": cfg["track_hidden"], "role": role, "pose_noise": pose_noise, "train": info, **split_meta,
                 "default_pose": default_pose(x, where, clips)}
         meta.update(extra or {})
         export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta, weights=args.weights)
