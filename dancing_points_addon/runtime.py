@@ -239,6 +239,29 @@ FOLLOWER_PULL = 0.1
 RECENTRE_POSE = (0.05, True)
 
 
+class KeySource:
+    """Where the two trackers' keys (the future trajectories they follow) come
+    from: the hook for studying the method (the evaluation's ablations). This
+    default takes them from the mapping's prediction
+    (:meth:`Synthesizer.leader_keys`, :meth:`Synthesizer.follower_keys`); a
+    subclass may return others, and :meth:`observe` sees every finished frame.
+    Each method gets the synthesizer (``synth``) whose frame it serves."""
+
+    def reset(self, synth) -> None:
+        """A fresh take begins (the synthesizer's own state is reset)."""
+
+    def leader(self, synth, root, cur_local, l_roots, l_tr):
+        """The tracked dancer's keys: (roots (K, 4), tracked points (K, 3, 3))."""
+        return synth.leader_keys(root, cur_local, l_roots, l_tr)
+
+    def follower(self, synth, f_roots, f_tr, l_roots, l_tr):
+        """The partner's keys: (roots (K, 4), tracked points (K, 3, 3))."""
+        return synth.follower_keys(f_roots, f_tr, l_roots, l_tr)
+
+    def observe(self, synth, tracked: DuetFrame, partner: DuetFrame) -> None:
+        """The frame just made (tracked dancer, partner), in the take's scale."""
+
+
 class Synthesizer:
     """Holds the ONNX sessions (:data:`~.nets.MODEL_FILES`) and the rollout state.
 
@@ -257,9 +280,11 @@ class Synthesizer:
     """
 
     def __init__(self, options: SynthesisOptions | None = None, nets: dict | None = None,
-                 follower: FollowerOptions | None = FollowerOptions(), record_predictions: bool = False):
+                 follower: FollowerOptions | None = FollowerOptions(), record_predictions: bool = False,
+                 keys: KeySource | None = None):
         options = options or SynthesisOptions()
         self.options = options
+        self.keys = keys if keys is not None else KeySource()
         self.record_predictions = bool(record_predictions)
         self.last_prediction = None  # (2, FUTURE, 3, 3) float32 world, output scale (when recorded)
         self.height = None if options.height in (None, "auto", "") else float(options.height)
@@ -404,6 +429,7 @@ class Synthesizer:
             limits[1] = out_twist  # the thigh (a chain: hip joint, thigh, shin, foot, toes)
             self._out_twist = np.radians(limits).tolist()
             self._leg_joints = self._leg_joints or LegJoints(self.bone_vectors["follower"])
+        self.keys.reset(self)
 
     def set_calibration(self, calibration: Calibration | None) -> None:
         """Read the devices of :meth:`step` as ``calibration`` says (devices, height,
@@ -604,8 +630,8 @@ class Synthesizer:
             self.follower.place(self._fol_target[1] if placement is not None else f_roots[0])
             self.prev_follower = (f_roots[0], f_tr[0])
         cur_local = to_local(tracked_s, root)
-        lk_roots, lk_tr = self._leader_keys(root, cur_local, l_roots, l_tr)
-        fk_roots, fk_tr = self._follower_keys(f_roots, f_tr, l_roots, l_tr)
+        lk_roots, lk_tr = self.keys.leader(self, root, cur_local, l_roots, l_tr)
+        fk_roots, fk_tr = self.keys.follower(self, f_roots, f_tr, l_roots, l_tr)
         self.prev_follower = (f_roots[0], f_tr[0])
         if placement is not None:
             goal = self._fol_target[1]
@@ -643,7 +669,9 @@ class Synthesizer:
         self.t += 1
         if s != 1.0:
             lp, fp = lp * (1.0 / s), fp * (1.0 / s)
-        return DuetFrame(lp, lr, lc), DuetFrame(fp, fr, fc)
+        a, b = DuetFrame(lp, lr, lc), DuetFrame(fp, fr, fc)
+        self.keys.observe(self, a, b)
+        return a, b
 
     def planted(self) -> list | None:
         """Which foot points the foot lock held on the last frame, per dancer
@@ -720,12 +748,12 @@ class Synthesizer:
     # mapping index of frame t − 1 + k for the keys k >= 2 (index 0 is frame t + 1)
     _OFF = F.TRACK_KEYS[1:] - 2
 
-    def _leader_keys(self, root, cur_local, l_roots, l_tr):
+    def leader_keys(self, root, cur_local, l_roots, l_tr):
         """Leader's key inputs: the current input frame, then the mapping's prediction."""
         return (np.concatenate([root[None], l_roots.take(self._OFF, axis=0)]),
                 np.concatenate([cur_local[None], l_tr.take(self._OFF, axis=0)]))
 
-    def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
+    def follower_keys(self, f_roots, f_tr, l_roots, l_tr):
         """Follower's key inputs: last step's prediction of frame t, then this step's.
         With the placement state, the key roots are the predicted trajectory's
         shape from her own root, eased towards her target (``follower.Placement``)."""

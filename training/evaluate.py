@@ -26,7 +26,7 @@ from dancing_points_addon.formats.asf_amc import load_amc
 from training.dataset import FOLLOWER, LEADER, SALSA_TAKES, split_range
 from dancing_points_addon.representation import root_from_head, to_local, to_world
 from dancing_points_addon.nets import OnnxNet, load_nets
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import KeySource, SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import TRACKED, WRISTS, bone_lengths_from_positions
 from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
 from dancing_points_addon.calibration import TRAIN_HEIGHT, headset_take, height_from_head
@@ -60,62 +60,60 @@ def test_segments(data_dir, takes=SALSA_TAKES, split="test", tracked="leader"):
 
 
 # -- ablations -----------------------------------------------------------------
-class PastInputSynth(Synthesizer):
+_KEY_OFF = F.TRACK_KEYS[1:] - 2  # mapping index of frame t − 1 + k for the keys k >= 2 (as the runtime's)
+
+
+class PastInputKeys(KeySource):
     """(b) trackers fed the past three-point trajectory instead of a future one:
-    the leader its own input, the follower its own predicted past."""
+    the leader its own input, the follower (``follower_past``) its own
+    predicted past."""
 
     HIST = int(F.TRACK_KEYS.max()) + 2
 
-    def reset(self):
-        super().reset()
+    def __init__(self, follower_past: bool = True):
+        self.follower_past = follower_past  # False: the follower keeps the full model (not ablated)
+
+    def reset(self, synth):
         self._lh = []  # leader (root, tracked local) per frame
         self._fh = []
 
     @staticmethod
-    def _past(hist, fallback):
+    def _past(hist):
         n = len(hist)
         idx = [max(n - 1 - k, 0) for k in F.TRACK_KEYS]  # frames (t - 1) - k relative to the last entry
-        if n == 0:
-            return fallback
         return np.stack([hist[i][0] for i in idx]), np.stack([hist[i][1] for i in idx])
 
-    def _leader_keys(self, root, cur_local, l_roots, l_tr):
+    def leader(self, synth, root, cur_local, l_roots, l_tr):
         self._lh.append((root, cur_local))
         self._lh = self._lh[-self.HIST:]
-        return self._past(self._lh[:-1] or self._lh, None)
+        return self._past(self._lh[:-1] or self._lh)
 
-    follower_past = True  # False: the follower keeps the full model (not ablated)
-
-    def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
+    def follower(self, synth, f_roots, f_tr, l_roots, l_tr):
         if not self._fh or not self.follower_past:
-            return super()._follower_keys(f_roots, f_tr, l_roots, l_tr)
-        return self._past(self._fh, None)
+            return synth.follower_keys(f_roots, f_tr, l_roots, l_tr)
+        return self._past(self._fh)
 
-    def _frame(self, positions, quats, valid):
-        a, b = super()._frame(positions, quats, valid)
-        s = self.scale()
-        tr = b.positions[TRACKED] * s
+    def observe(self, synth, tracked, partner):
         from dancing_points_addon.representation import device_rotation
         from dancing_points_addon.skeleton import HEAD_BONE
-        root = root_from_head(tr[0], device_rotation(b.rotations[HEAD_BONE]))
+        tr = partner.positions[TRACKED] * synth.scale()
+        root = root_from_head(tr[0], device_rotation(partner.rotations[HEAD_BONE]))
         self._fh.append((root, to_local(tr, root)))
         self._fh = self._fh[-self.HIST:]
-        return a, b
 
 
-class LeaderTrajSynth(Synthesizer):
+class LeaderTrajKeys(KeySource):
     """(c) the follower tracked from the leader's predicted future trajectory
     (no follower mapping)."""
 
-    def reset(self):
-        super().reset()
+    def reset(self, synth):
         self._prev_lead = None
 
-    def _follower_keys(self, f_roots, f_tr, l_roots, l_tr):
+    def follower(self, synth, f_roots, f_tr, l_roots, l_tr):
         prev = self._prev_lead if self._prev_lead is not None else (l_roots[0], l_tr[0])
         self._prev_lead = (l_roots[0], l_tr[0])
-        return (np.concatenate([prev[0][None], l_roots[self._OFF]]),
-                np.concatenate([prev[1][None], l_tr[self._OFF]]))
+        return (np.concatenate([prev[0][None], l_roots[_KEY_OFF]]),
+                np.concatenate([prev[1][None], l_tr[_KEY_OFF]]))
 
 
 class FixedPose:
@@ -485,18 +483,18 @@ def main(argv=None):
                 abl = dict(nets, **{r: OnnxNet(p, compute=next(iter(nets.values())).compute)
                                     for r, p in paths.items()})
                 partial[tag] = sorted(set(("leader", "follower")) - set(paths))
-                cls = PastInputSynth if tag == "pastinput" else Synthesizer
-                if tag == "pastinput" and "follower" in partial[tag]:
-                    cls = type("PastInputLeaderSynth", (PastInputSynth,), {"follower_past": False})
                 # (b) ablates the mapping for the follower too: her placement state,
                 # separation and holds (built on the mapping's prediction) go with it
                 kw = {"follower": None} if tag == "pastinput" and "follower" not in partial[tag] else {}
+                past = tag == "pastinput"
+                follower_past = "follower" not in partial[tag]
                 systems[{"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}[tag]] = \
-                    (lambda seg, a=abl, c=cls, kw=kw: c(opts(seg), nets=a, **kw))
+                    (lambda seg, a=abl, kw=kw, past=past, fp=follower_past: Synthesizer(
+                        opts(seg), nets=a, keys=PastInputKeys(fp) if past else None, **kw))
     if not args.only_full:
         # (c): no follower mapping, so none of the placement built on it either
-        systems["(c) follower from leader trajectory"] = lambda seg: LeaderTrajSynth(opts(seg), nets=nets,
-                                                                                    follower=None)
+        systems["(c) follower from leader trajectory"] = lambda seg: Synthesizer(opts(seg), nets=nets, follower=None,
+                                                                                 keys=LeaderTrajKeys())
     names = {"vanilla": "(a) vanilla MLP tracker", "pastinput": "(b) no mapping, past input"}
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
