@@ -92,11 +92,11 @@ def _npz_diff(path, ref):
 
 
 def _blender_import(path, **kw):
-    take_io = import_from_extension("operators.take_io")
+    take_collection = import_from_extension("operators.take_collection")
     bsu.fresh_scene()
     assert bpy.ops.dancing_points.import_take(filepath=str(path), **kw) == {'FINISHED'}
     coll = next(c for c in bpy.data.collections if c.dancing_points.kind == 'TAKE')
-    take = take_io.take_from_collection(bpy.context, coll)
+    take = take_collection.take_from_collection(bpy.context, coll)
     return take, Synthesizer(SynthesisOptions(models=MODELS, height=take.height)).synthesize(take)
 
 

@@ -483,7 +483,7 @@ def test_blender_import_applies_the_core_rules(blender, tmp_path):
 def test_blender_import_of_epoch_times(blender, sample, tmp_path):
     import bpy
     from ext_util import import_from_extension
-    take_io = import_from_extension("operators.take_io")
+    take_collection = import_from_extension("operators.take_collection")
     keys = []
     for name, take in (("zero", sample), ("epoch", _shifted(sample))):
         p = tmp_path / f"{name}.csv"
@@ -492,6 +492,6 @@ def test_blender_import_of_epoch_times(blender, sample, tmp_path):
         assert bpy.ops.dancing_points.import_take(filepath=str(p)) == {'FINISHED'}
         (coll,) = [c for c in bpy.data.collections if c.name not in before]
         assert coll.dancing_points.n_frames == 343
-        keys.append(take_io.take_from_collection(bpy.context, coll))
+        keys.append(take_collection.take_from_collection(bpy.context, coll))
     assert np.array_equal(keys[0].valid, keys[1].valid)
     assert np.nanmax(np.abs(keys[0].positions - keys[1].positions)) < 1e-6
