@@ -20,10 +20,10 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-import blender_scene_util as bsu  # noqa: E402
+from support import blender_scene_util as bsu  # noqa: E402
 from conftest import MODELS, SALSA  # noqa: E402
-from ext_util import enable_extension, import_from_extension  # noqa: E402
-from helpers import quat_angle_deg  # noqa: E402
+from support.ext_util import enable_extension, import_from_extension  # noqa: E402
+from support.helpers import quat_angle_deg  # noqa: E402
 
 from types import SimpleNamespace  # noqa: E402
 

@@ -16,7 +16,7 @@ stopped at its end (also when a test fails). On them:
 
 Dask is an optional dependency of the command line (requirements-dev.txt):
 this module is skipped only where it is not installed. The throughput figure
-is a benchmark: ``.venv/bin/python tests/bench_cluster.py``.
+is a benchmark: ``.venv/bin/python benchmarks/bench_cluster.py``.
 """
 import os
 import shutil
@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
-from helpers import N60, cut, leftovers, make_takes, read_report
+from support.helpers import N60, cut, leftovers, make_takes, read_report
 
 distributed = pytest.importorskip("distributed", reason="dask's distributed package is not installed")
 

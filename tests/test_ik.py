@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from training import metrics
-from helpers import bone_twist_deg
+from support.helpers import bone_twist_deg
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.foot_lock import FootLocker
 from dancing_points_addon.ik import EndEffectorIK, rotation_between, two_bone_ik

@@ -19,9 +19,9 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-import blender_scene_util as bsu  # noqa: E402
+from support import blender_scene_util as bsu  # noqa: E402
 from conftest import MODELS, ROOT  # noqa: E402
-from ext_util import import_from_extension  # noqa: E402
+from support.ext_util import import_from_extension  # noqa: E402
 
 from dancing_points_addon import blender_math as bm  # noqa: E402
 from dancing_points_addon.formats.inputs import load_input  # noqa: E402

@@ -9,7 +9,7 @@ exactly the way Blender loads an installed extension (relative imports,
 
 Reuse from any test::
 
-    from ext_util import enable_extension, dp_extension   # fixture
+    from support.ext_util import enable_extension, dp_extension   # fixture
 
     def test_something(dp_extension):          # dp_extension == module name
         import bpy
