@@ -29,7 +29,7 @@ import sys
 import tempfile
 
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 EXTENSION_ID = "dancing_points"
 REPO_MODULE = "dancing_points_tests"
 REPO_NAME = "Dancing Points tests"
