@@ -32,7 +32,7 @@ from math import atan2, cos, pi, sin, sqrt
 
 import numpy as np
 
-from .ik import mat_mul, mat_vec, two_bone_s
+from .scalar_kernels import mat_mul, mat_vec, two_bone_s
 from .representation import DEVICE_FROM_HEAD
 from .skeleton import JOINT_INDEX
 

@@ -9,7 +9,7 @@ from math import pi, sin, sqrt
 import numpy as np
 
 from .features import FPS
-from .ik import I3, mat_vec, rot_between_s, rot_scale, smooth01, two_bone_s
+from .scalar_kernels import I3, mat_vec, rot_between_s, rot_scale, smooth01, two_bone_s
 from .skeleton import JOINT_INDEX
 
 _J = JOINT_INDEX

@@ -24,21 +24,24 @@ Bone lengths of the input positions are preserved (except for the optional
 spine stretch of :class:`EndEffectorIK`, see there).
 
 The per-frame classes work on Python floats for the handful of 3-vectors they
-touch: numpy's per-call overhead (~1 µs) would dominate such tiny problems.
-:func:`two_bone_ik` is the vectorised numpy version of the same solver.
+touch (the kernels of :mod:`.scalar_kernels`): numpy's per-call overhead
+(~1 µs) would dominate such tiny problems. :func:`two_bone_ik` is the
+vectorised numpy version of their two-bone solver.
 """
 from __future__ import annotations
 
 from itertools import chain
-from math import atan2, cos, isfinite, radians, sin, sqrt
+from math import cos, isfinite, radians, sin, sqrt
 
 import numpy as np
 
+from .scalar_kernels import (about, add3, align_s, angle_s, frame_s, mat_mul, minimal_turns, rot_between_s,
+                             rot_scale, smooth01, sub3, transpose_s, two_bone_points_s, two_bone_s)
 from .skeleton import JOINT_INDEX, PARENTS
 
 __all__ = [
     "rotation_between", "two_bone_ik", "bone_transforms", "transforms_to_matrices", "EndEffectorIK", "smoothstep",
-    "I3", "rot_between_s", "two_bone_s", "mat_vec", "mat_mul", "smooth01", "rot_scale", "ArmTurnLimit",
+    "ArmTurnLimit",
 ]
 
 _J = JOINT_INDEX
@@ -187,183 +190,7 @@ def transforms_to_matrices(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------
-# scalar (Python float) kernels for the per-frame solvers
-
-I3 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-
-
-def rot_between_s(ux, uy, uz, vx, vy, vz):
-    """Row-major 9-tuple of the minimal rotation taking u to v (scalar)."""
-    nu = sqrt(ux * ux + uy * uy + uz * uz)
-    nv = sqrt(vx * vx + vy * vy + vz * vz)
-    if nu < 1e-12 or nv < 1e-12:
-        return I3
-    ux /= nu; uy /= nu; uz /= nu
-    vx /= nv; vy /= nv; vz /= nv
-    c = ux * vx + uy * vy + uz * vz
-    if 1.0 + c < 1e-12:
-        if abs(ux) < 0.9:
-            ax, ay, az = 0.0, uz, -uy  # u x (1,0,0)
-        else:
-            ax, ay, az = -uz, 0.0, ux  # u x (0,1,0)
-        na = sqrt(ax * ax + ay * ay + az * az)
-        ax /= na; ay /= na; az /= na
-        return (2 * ax * ax - 1, 2 * ax * ay, 2 * ax * az,
-                2 * ay * ax, 2 * ay * ay - 1, 2 * ay * az,
-                2 * az * ax, 2 * az * ay, 2 * az * az - 1)
-    wx = uy * vz - uz * vy
-    wy = uz * vx - ux * vz
-    wz = ux * vy - uy * vx
-    k = 1.0 / (1.0 + c)
-    return (c + k * wx * wx, k * wx * wy - wz, k * wx * wz + wy,
-            k * wy * wx + wz, c + k * wy * wy, k * wy * wz - wx,
-            k * wz * wx - wy, k * wz * wy + wx, c + k * wz * wz)
-
-
-def mat_vec(R, x, y, z):
-    return (R[0] * x + R[1] * y + R[2] * z, R[3] * x + R[4] * y + R[5] * z,
-            R[6] * x + R[7] * y + R[8] * z)
-
-
-def mat_mul(A, B):
-    a0, a1, a2, a3, a4, a5, a6, a7, a8 = A
-    b0, b1, b2, b3, b4, b5, b6, b7, b8 = B
-    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
-            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
-            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
-
-
-def two_bone_s(hip, knee, ankle, target, pole):
-    """Scalar :func:`two_bone_ik` on 3-sequences: ``(knee', ankle', R1, R2)``
-    (points as 3-tuples, rotations as row-major 9-tuples)."""
-    nk, na = two_bone_points_s(hip, knee, ankle, target, pole)
-    return (nk, na) + _minimal_turns(hip, knee, ankle, nk, na)
-
-
-def _minimal_turns(hip, knee, ankle, nk, na):
-    """The minimal rotations taking the bones (hip→knee, knee→ankle) onto
-    (hip→nk, nk→na): the upper bone's, then the lower one's after it."""
-    ux, uy, uz = knee[0] - hip[0], knee[1] - hip[1], knee[2] - hip[2]
-    lx, ly, lz = ankle[0] - knee[0], ankle[1] - knee[1], ankle[2] - knee[2]
-    R1 = rot_between_s(ux, uy, uz, nk[0] - hip[0], nk[1] - hip[1], nk[2] - hip[2])
-    rx, ry, rz = mat_vec(R1, lx, ly, lz)
-    S = rot_between_s(rx, ry, rz, na[0] - nk[0], na[1] - nk[1], na[2] - nk[2])
-    return R1, mat_mul(S, R1)
-
-
-def two_bone_points_s(hip, knee, ankle, target, pole):
-    """The new (knee, ankle) of :func:`two_bone_s`."""
-    hx, hy, hz = hip
-    kx, ky, kz = knee
-    ax, ay, az = ankle
-    ux, uy, uz = kx - hx, ky - hy, kz - hz
-    lx, ly, lz = ax - kx, ay - ky, az - kz
-    l1 = sqrt(ux * ux + uy * uy + uz * uz)
-    l2 = sqrt(lx * lx + ly * ly + lz * lz)
-    dx, dy, dz = target[0] - hx, target[1] - hy, target[2] - hz
-    dist = sqrt(dx * dx + dy * dy + dz * dz)
-    if dist > 1e-12:
-        nx, ny, nz = dx / dist, dy / dist, dz / dist
-    else:
-        ox, oy, oz = ax - hx, ay - hy, az - hz
-        on = sqrt(ox * ox + oy * oy + oz * oz)
-        nx, ny, nz = (ox / on, oy / on, oz / on) if on > 1e-12 else (0.0, -1.0, 0.0)
-    lo_, hi_ = abs(l1 - l2), l1 + l2
-    D = lo_ if dist < lo_ else (hi_ if dist > hi_ else dist)
-    a = (l1 * l1 - l2 * l2 + D * D) / (2.0 * D) if D > 1e-12 else 0.0
-    h2 = l1 * l1 - a * a
-    h = sqrt(h2) if h2 > 0.0 else 0.0
-    # bend direction: pole, else old knee, else any perpendicular
-    px, py, pz = pole[0] - hx, pole[1] - hy, pole[2] - hz
-    s = px * nx + py * ny + pz * nz
-    bx, by, bz = px - s * nx, py - s * ny, pz - s * nz
-    bn = sqrt(bx * bx + by * by + bz * bz)
-    if bn <= 1e-9:
-        s = ux * nx + uy * ny + uz * nz
-        bx, by, bz = ux - s * nx, uy - s * ny, uz - s * nz
-        bn = sqrt(bx * bx + by * by + bz * bz)
-        if bn <= 1e-9:
-            ex, ey, ez = (1.0, 0.0, 0.0) if abs(nx) < 0.9 else (0.0, 0.0, 1.0)
-            s = ex * nx + ey * ny + ez * nz
-            bx, by, bz = ex - s * nx, ey - s * ny, ez - s * nz
-            bn = sqrt(bx * bx + by * by + bz * bz)
-    bx /= bn; by /= bn; bz /= bn
-    return ((hx + a * nx + h * bx, hy + a * ny + h * by, hz + a * nz + h * bz),
-            (hx + D * nx, hy + D * ny, hz + D * nz))
-
-
-def smooth01(x):
-    if x >= 1.0:
-        return 1.0
-    if x <= 0.0:
-        return 0.0
-    return x * x * (3.0 - 2.0 * x)
-
-
-def rot_scale(D, w):
-    """The rotation about the axis of ``D`` by ``w`` times its angle (9-tuples)."""
-    vx, vy, vz = D[7] - D[5], D[2] - D[6], D[3] - D[1]  # 2 sin(θ) axis
-    s2 = sqrt(vx * vx + vy * vy + vz * vz)
-    c = 0.5 * (D[0] + D[4] + D[8] - 1.0)
-    th = atan2(0.5 * s2, c)
-    if th < 1e-12:
-        return I3
-    if s2 < 1e-9:  # a half turn: axis from the symmetric part
-        m = max(range(3), key=lambda i: D[4 * i])
-        col = (D[m] + (m == 0), D[3 + m] + (m == 1), D[6 + m] + (m == 2))
-        n = sqrt(col[0] ** 2 + col[1] ** 2 + col[2] ** 2)
-        x, y, z = col[0] / n, col[1] / n, col[2] / n
-    else:
-        x, y, z = vx / s2, vy / s2, vz / s2
-    a = w * th
-    ca, sa = cos(a), sin(a)
-    t = 1.0 - ca
-    return (ca + t * x * x, t * x * y - sa * z, t * x * z + sa * y,
-            t * y * x + sa * z, ca + t * y * y, t * y * z - sa * x,
-            t * z * x - sa * y, t * z * y + sa * x, ca + t * z * z)
-
-
-# ---------------------------------------------------------------------------
 # end-effector IK (head and wrists on the tracked points)
-
-
-def _sub3(a, b):
-    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
-
-
-def _add3(a, b):
-    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
-
-
-def _about(p, piv, R, new_piv):
-    """``new_piv + R (p − piv)``."""
-    x, y, z = mat_vec(R, p[0] - piv[0], p[1] - piv[1], p[2] - piv[2])
-    return (new_piv[0] + x, new_piv[1] + y, new_piv[2] + z)
-
-
-def _frame_s(ux, uy, uz, nx, ny, nz):
-    """Rows of the orthonormal frame (u, n ⟂ u, u × n), or None when degenerate."""
-    nu = sqrt(ux * ux + uy * uy + uz * uz)
-    if nu < 1e-12:
-        return None
-    ux, uy, uz = ux / nu, uy / nu, uz / nu
-    s = nx * ux + ny * uy + nz * uz
-    nx, ny, nz = nx - s * ux, ny - s * uy, nz - s * uz
-    nn = sqrt(nx * nx + ny * ny + nz * nz)
-    if nn < 1e-12:
-        return None
-    nx, ny, nz = nx / nn, ny / nn, nz / nn
-    return (ux, uy, uz, nx, ny, nz, uy * nz - uz * ny, uz * nx - ux * nz, ux * ny - uy * nx)
-
-
-def _tr(A):
-    """The transpose of a 9-tuple matrix."""
-    return (A[0], A[3], A[6], A[1], A[4], A[7], A[2], A[5], A[8])
-
-
-def _align_s(F0, F1):
-    """The rotation taking frame ``F0`` onto ``F1`` (rows as from :func:`_frame_s`): F1ᵀ F0."""
-    return mat_mul(_tr(F1), F0)
 
 
 def _hinge_turns(sh, el, wr, nel, nwr, straight=0.05):
@@ -373,20 +200,20 @@ def _hinge_turns(sh, el, wr, nel, nwr, straight=0.05):
     a minimal rotation of the forearm alone is ill-defined when it has to turn
     by nearly half a turn, and flips. An arm (old or new) straighter than
     ``straight`` (sine of the elbow angle) turns by the minimal rotations
-    (:func:`_minimal_turns`)."""
-    u = _sub3(el, sh); l = _sub3(wr, el)
-    u2 = _sub3(nel, sh); l2 = _sub3(nwr, nel)
+    (:func:`minimal_turns`)."""
+    u = sub3(el, sh); l = sub3(wr, el)
+    u2 = sub3(nel, sh); l2 = sub3(nwr, nel)
     n = (u[1] * l[2] - u[2] * l[1], u[2] * l[0] - u[0] * l[2], u[0] * l[1] - u[1] * l[0])
     n2 = (u2[1] * l2[2] - u2[2] * l2[1], u2[2] * l2[0] - u2[0] * l2[2], u2[0] * l2[1] - u2[1] * l2[0])
     lu = sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) * sqrt(l[0] ** 2 + l[1] ** 2 + l[2] ** 2)
     nn = sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2)
     nn2 = sqrt(n2[0] ** 2 + n2[1] ** 2 + n2[2] ** 2)
     if lu >= 1e-12 and nn >= straight * lu and nn2 >= straight * lu:
-        Fu, Fu2 = _frame_s(*u, *n), _frame_s(*u2, *n2)
-        Fl, Fl2 = _frame_s(*l, *n), _frame_s(*l2, *n2)
+        Fu, Fu2 = frame_s(*u, *n), frame_s(*u2, *n2)
+        Fl, Fl2 = frame_s(*l, *n), frame_s(*l2, *n2)
         if Fu is not None and Fu2 is not None and Fl is not None and Fl2 is not None:
-            return _align_s(Fu, Fu2), _align_s(Fl, Fl2)
-    return _minimal_turns(sh, el, wr, nel, nwr)
+            return align_s(Fu, Fu2), align_s(Fl, Fl2)
+    return minimal_turns(sh, el, wr, nel, nwr)
 
 
 class EndEffectorIK:
@@ -480,20 +307,20 @@ class EndEffectorIK:
         LB, UB, TH, LN, UN, HD = (j["lowerback"], j["upperback"], j["thorax"],
                                   j["lowerneck"], j["upperneck"], j["head"])
         if self.lean > 0.0:
-            Q = rot_between_s(*_sub3(pts[UN], root), *_sub3(target, root))
+            Q = rot_between_s(*sub3(pts[UN], root), *sub3(target, root))
             if self.lean < 1.0:
                 Q = rot_scale(Q, self.lean)
-            head_vec = _sub3(pts[HD], pts[UN])
+            head_vec = sub3(pts[HD], pts[UN])
             for i in range(len(pts)):
-                pts[i] = _about(pts[i], root, Q, root)
+                pts[i] = about(pts[i], root, Q, root)
                 if i != HD:
                     delta[i] = Q
-            pts[HD] = _add3(pts[UN], head_vec)
+            pts[HD] = add3(pts[UN], head_vec)
         n0, ln, un, hd = pts[TH], pts[LN], pts[UN], pts[HD]
-        D = rot_between_s(*_sub3(un, n0), *_sub3(target, n0))
-        ln2 = _about(ln, n0, D, n0)
-        un2 = _about(un, n0, D, n0)
-        ex, ey, ez = _sub3(target, un2)
+        D = rot_between_s(*sub3(un, n0), *sub3(target, n0))
+        ln2 = about(ln, n0, D, n0)
+        un2 = about(un, n0, D, n0)
+        ex, ey, ez = sub3(target, un2)
         en = sqrt(ex * ex + ey * ey + ez * ez)
         if en > self.max_stretch:
             f = self.max_stretch / en
@@ -510,14 +337,14 @@ class EndEffectorIK:
             lb2 = (lb[0] + ex / 3.0, lb[1] + ey / 3.0, lb[2] + ez / 3.0)
             ub2 = (ub[0] + 2.0 * ex / 3.0, ub[1] + 2.0 * ey / 3.0, ub[2] + 2.0 * ez / 3.0)
             th2 = (th[0] + ex, th[1] + ey, th[2] + ez)
-            self._compose(delta, LB, rot_between_s(*_sub3(lb, root), *_sub3(lb2, root)))
-            self._compose(delta, UB, rot_between_s(*_sub3(ub, lb), *_sub3(ub2, lb2)))
-            self._compose(delta, TH, rot_between_s(*_sub3(th, ub), *_sub3(th2, ub2)))
+            self._compose(delta, LB, rot_between_s(*sub3(lb, root), *sub3(lb2, root)))
+            self._compose(delta, UB, rot_between_s(*sub3(ub, lb), *sub3(ub2, lb2)))
+            self._compose(delta, TH, rot_between_s(*sub3(th, ub), *sub3(th2, ub2)))
             pts[LB], pts[UB], pts[TH] = lb2, ub2, th2
         e = (ex, ey, ez)
-        pts[LN] = _add3(ln2, e)
-        pts[UN] = _add3(un2, e)
-        pts[HD] = _add3(pts[UN], _sub3(hd, un))
+        pts[LN] = add3(ln2, e)
+        pts[UN] = add3(un2, e)
+        pts[HD] = add3(pts[UN], sub3(hd, un))
 
     SWING_LO, SWING_HI = 0.2, 0.4
     SWING_COS_ON, SWING_COS_OFF = cos(radians(120.0)), cos(radians(160.0))
@@ -531,11 +358,11 @@ class EndEffectorIK:
         where that line's direction is ill-defined) or the swing 160° or more
         (where its axis is) — then two-bone IK from the swung arm with its
         elbow as the pole, each bone turning as a hinge (:func:`_hinge_turns`)."""
-        u, l, w = _sub3(el, sh), _sub3(wr, el), _sub3(wr, sh)
+        u, l, w = sub3(el, sh), sub3(wr, el), sub3(wr, sh)
         arm = sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) + sqrt(l[0] ** 2 + l[1] ** 2 + l[2] ** 2)
         wn = sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
         beta = smooth01((wn / max(arm, 1e-12) - cls.SWING_LO) / (cls.SWING_HI - cls.SWING_LO))
-        d = _sub3(target, sh)
+        d = sub3(target, sh)
         dn = sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2)
         if beta > 0.0 and dn > 1e-12:
             # a swing of nearly half a turn has an ill-defined axis: fade it out
@@ -545,8 +372,8 @@ class EndEffectorIK:
             Q = rot_between_s(*w, *d)
             if beta < 1.0:
                 Q = rot_scale(Q, beta)
-            el = _about(el, sh, Q, sh)
-            wr = _about(wr, sh, Q, sh)
+            el = about(el, sh, Q, sh)
+            wr = about(wr, sh, Q, sh)
         nel, nwr = two_bone_points_s(sh, el, wr, target, el)
         R1, R2 = _hinge_turns(sh, el, wr, nel, nwr)
         if beta > 0.0:
@@ -560,7 +387,7 @@ class EndEffectorIK:
         l1 = sqrt((el[0] - sh[0]) ** 2 + (el[1] - sh[1]) ** 2 + (el[2] - sh[2]) ** 2)
         l2 = sqrt((wr[0] - el[0]) ** 2 + (wr[1] - el[1]) ** 2 + (wr[2] - el[2]) ** 2)
         reach = self.reach * (l1 + l2)
-        d = _sub3(target, sh)
+        d = sub3(target, sh)
         dist = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         if dist > reach:
             # turn the clavicle so that the shoulder comes within reach: two-bone
@@ -570,7 +397,7 @@ class EndEffectorIK:
             tip = (sh[0] + d[0] * f, sh[1] + d[1] * f, sh[2] + d[2] * f)
             nsh, _, Rc, _ = two_bone_s(n0, sh, tip, target, sh)
             for i in (hum,) + rigid:
-                pts[i] = _about(pts[i], sh, Rc, nsh)
+                pts[i] = about(pts[i], sh, Rc, nsh)
                 self._compose(delta, i, Rc)
             self._compose(delta, clav, Rc)
             pts[clav] = sh = nsh
@@ -580,18 +407,11 @@ class EndEffectorIK:
         else:
             nel, nwr, R1, R2 = two_bone_s(sh, el, wr, target, el)
         for i in rigid:
-            pts[i] = _about(pts[i], el, R2, nel)
+            pts[i] = about(pts[i], el, R2, nel)
             self._compose(delta, i, R2)
         pts[rigid[1]] = nwr  # exact (the rigid move puts it there up to rounding)
         pts[hum] = nel
         self._compose(delta, hum, R1)
-
-
-def _angle(D):
-    """The angle (rad) of the rotation ``D`` (9-tuple)."""
-    c = 0.5 * (D[0] + D[4] + D[8] - 1.0)
-    s = 0.5 * sqrt((D[7] - D[5]) ** 2 + (D[2] - D[6]) ** 2 + (D[3] - D[1]) ** 2)
-    return atan2(s, c)
 
 
 class ArmTurnLimit:
@@ -626,7 +446,7 @@ class ArmTurnLimit:
         """``positions (31, 3)``, ``rotations (31, 3, 3)`` (world); returns them,
         edited in place where a bone turned too fast."""
         C = tuple(rotations[self._th].ravel().tolist())
-        Ct = _tr(C)
+        Ct = transpose_s(C)
         lim = self.max
         acted = False
         for side, (clav, hum, rigid) in enumerate(self._arms):
@@ -636,19 +456,19 @@ class ArmTurnLimit:
             prev = self._prev[side]
             if prev is not None:
                 ph, pf = prev
-                D = mat_mul(rh, _tr(ph))
-                th = _angle(D)
+                D = mat_mul(rh, transpose_s(ph))
+                th = angle_s(D)
                 if th > lim:  # the upper arm (and the forearm with it) turns lim towards its new pose
                     rh2 = mat_mul(rot_scale(D, lim / th), ph)
-                    E = mat_mul(C, mat_mul(rh2, mat_mul(_tr(rh), Ct)))
+                    E = mat_mul(C, mat_mul(rh2, mat_mul(transpose_s(rh), Ct)))
                     self._turn(positions, rotations, (hum,) + rigid, E, positions[clav].tolist())
                     rh, rf = rh2, mat_mul(Ct, mat_mul(E, Rf))
                     acted = True
-                D = mat_mul(rf, _tr(pf))
-                th = _angle(D)
+                D = mat_mul(rf, transpose_s(pf))
+                th = angle_s(D)
                 if th > lim:  # the forearm turns lim towards its new pose about the elbow
                     rf2 = mat_mul(rot_scale(D, lim / th), pf)
-                    E = mat_mul(C, mat_mul(rf2, mat_mul(_tr(rf), Ct)))
+                    E = mat_mul(C, mat_mul(rf2, mat_mul(transpose_s(rf), Ct)))
                     self._turn(positions, rotations, rigid, E, positions[hum].tolist())
                     rf = rf2
                     acted = True

@@ -21,7 +21,8 @@ from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon import skinning
 from ..dancing_points_addon.skeleton import JOINT_NAMES, PARENTS
 from . import compat, stage
-from .props import KIND_DUET, ROLE_PROP, is_duet
+from .kinds import KIND_DUET, is_duet, is_take
+from .props import ROLE_PROP
 
 ROLES = ("leader", "follower")
 ROLE_LABEL = {"leader": "Leader", "follower": "Follower"}
@@ -193,7 +194,6 @@ def _hide_previous(take_name, keep):
 def frame_step_for(context, take_name):
     """Scene frames per 30 Hz sample: the take's (its empties' keys, in scene
     time), else the scene's frame rate / 30."""
-    from .props import is_take
     take = bpy.data.collections.get(take_name)
     if is_take(take) and take.dancing_points.frame_step > 0:
         return float(take.dancing_points.frame_step)

@@ -151,7 +151,7 @@ def convert_job(job, progress):
     on a bad take (the worker reports it and removes the temporary files)."""
     from .props import active_take
     from .synthesize import make_synthesizer
-    from .take_io import take_from_collection
+    from .take_collection import take_from_collection
     from . import bake
 
     path = job["input"]

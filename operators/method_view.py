@@ -25,7 +25,7 @@ in the scene beside a baked duet.
   otherwise. One object, fixed topology: any length of take.
 
 The source body of a take imported from BVH/FBX/AMC with "Keep Source Body"
-(``take_io``, objects flagged ``["dp_ghost"]``) is shown or hidden with the
+(``take_ghost``, objects flagged ``["dp_ghost"]``) is shown or hidden with the
 same settings (``Scene.dancing_points_method``: show_inputs,
 show_predictions, show_contacts, show_ghost, method_in_render). With
 ``method_in_render`` off (the default) every such object has
@@ -42,10 +42,9 @@ from ..dancing_points_addon.errors import UserError
 from ..dancing_points_addon.features import FUTURE
 from ..dancing_points_addon.skeleton import FEET
 from .bake import Created, material
-from .props import DEVICE_OBJECT_NAMES, DEVICES, device_objects
+from .props import DEVICE_OBJECT_NAMES, DEVICES, GHOST_PROP, device_objects
 
 METHOD_PROP = "dp_method"  # on a method object: "predictions", "inputs" or "contacts"
-GHOST_PROP = "dp_ghost"  # on a source-body object kept at import (take_io)
 PRED_PROP = "dp_predictions"  # float32 (T, 2 dancers, 3 points, FUTURE, 3), Blender space
 CONTACT_PROP = "dp_contact_marks"  # float32 (T, 8 discs, 4): centre (Blender space), in contact 0/1
 FRAME_START_PROP = "dp_frame_start"

@@ -10,13 +10,14 @@ being disabled (as plain custom properties).
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-# Values of Collection.dancing_points.kind
-KIND_NONE, KIND_TAKE, KIND_DUET = 'NONE', 'TAKE', 'DUET'
+from .kinds import KIND_DUET, KIND_NONE, KIND_TAKE, is_duet, is_take
+from .stage import apply_camera_mode
 # ID property on the three take empties naming the device they carry.
 DEVICE_PROP = "dp_device"
 # Animated ID property on the empties: 1 tracked, 0 lost (SPEC §3 lost tracking).
 TRACKED_PROP = "dp_tracked"
 ROLE_PROP = "dp_role"  # on a baked armature or body: "leader" or "follower"
+GHOST_PROP = "dp_ghost"  # on the objects of a take's source body (take_ghost; method_view shows/hides them)
 ROLES = ("leader", "follower")
 DEVICES = ("head", "lhand", "rhand")
 DEVICE_OBJECT_NAMES = {"head": "Head", "lhand": "LeftHand", "rhand": "RightHand"}
@@ -84,11 +85,10 @@ class DP_CollectionSettings(bpy.types.PropertyGroup):
 
 
 def _is_take(self, coll):
-    return getattr(coll, "dancing_points", None) is not None and coll.dancing_points.kind == KIND_TAKE
+    return is_take(coll)
 
 
 def _camera_mode_update(self, context):
-    from .stage import apply_camera_mode  # the stage module imports this one
     apply_camera_mode(self.id_data)
 
 
@@ -140,15 +140,6 @@ def unregister():
 
 
 # --------------------------------------------------------------------------- lookups
-
-def is_take(coll):
-    return coll is not None and _is_take(None, coll)
-
-
-def is_duet(coll):
-    return coll is not None and getattr(coll, "dancing_points", None) is not None \
-        and coll.dancing_points.kind == KIND_DUET
-
 
 def device_objects(take_coll):
     """``{device: object}`` of the take's empties (by their ``dp_device`` property)."""

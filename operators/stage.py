@@ -25,6 +25,7 @@ from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon import camera_path as cp
 from ..dancing_points_addon.skeleton import JOINT_NAMES
 from . import compat
+from .kinds import is_duet, is_take
 
 STAGE_NAME = "DP Stage"
 # value: "stage", "floor", "camera", "camera_rig", "sun", "world", "material", "action"
@@ -292,7 +293,6 @@ def _ours(obj):
     """Whether an object belongs to the add-on (a take, duet, stage or ghost), not the user."""
     if _role(obj) is not None or obj.get("dp_role") is not None or obj.get("dp_ghost") is not None:
         return True
-    from .props import is_duet, is_take
     return any(_role(c) is not None or is_take(c) or is_duet(c) for c in obj.users_collection)
 
 
@@ -397,7 +397,6 @@ def excluded(context):
 
 def newest_duet(scene):
     """The newest visible duet collection of the scene (for the burn-in's take name)."""
-    from .props import is_duet
     duets = [c for c in scene.collection.children_recursive if is_duet(c) and not c.hide_render]
     return max(duets, key=lambda c: c.dancing_points.version, default=None)
 

@@ -20,7 +20,7 @@ from ..dancing_points_addon.nets import MODEL_DIR, MODEL_ENV, ModelError
 from ..dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from . import bake, method_view
 from .props import active_take
-from .take_io import take_from_collection
+from .take_collection import take_from_collection
 
 
 def _preferences(context):

@@ -21,7 +21,7 @@ if str(ROOT) not in sys.path:
 @pytest.fixture
 def dp_extension():
     """The extension enabled in ``bpy``; the value is its module name ``bl_ext.<repo>.dancing_points``."""
-    from ext_util import enable_extension
+    from support.ext_util import enable_extension
 
     return enable_extension()
 

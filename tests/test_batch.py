@@ -10,7 +10,7 @@ with their reason. Existing outputs are never overwritten without
 (or a worker killed) leaves no partial file, and ``--resume`` finishes the rest.
 
 The throughput figure (``--jobs 2`` vs ``--jobs 1``) is a benchmark, not a
-test: ``.venv/bin/python tests/bench_batch.py``.
+test: ``.venv/bin/python benchmarks/bench_batch.py``.
 """
 import argparse
 import io
@@ -26,7 +26,8 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
-from helpers import N60, cut, leftovers, make_takes, proc_table, read_report, run_batch, run_bpy_script, run_cli_long as run_cli
+from support.helpers import (N60, cut, leftovers, make_takes, proc_table, read_report, run_batch, run_bpy_script,
+                             run_cli_long as run_cli)
 from dancing_points_addon import batch
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.bvh import load_bvh
@@ -539,7 +540,7 @@ def test_blender_command(takes, tmp_path):
         import argparse, importlib, io, json, os, sys, contextlib
         sys.path.insert(0, {str(ROOT / 'tests')!r})
         import bpy
-        from ext_util import enable_extension
+        from support.ext_util import enable_extension
         mod = enable_extension()
         cli = importlib.import_module(mod + ".operators.batch_cli")
         core = importlib.import_module(mod + ".dancing_points_addon.batch")
@@ -554,7 +555,7 @@ def test_blender_command(takes, tmp_path):
                                   "--format", "npz", "--jobs", "2", "--models", {MODELS!r}, "--no-progress"])
         # Workers as Blender starts them: the extension enabled, then the 'worker' command.
         boot = ("import sys; sys.path.insert(0, {str(ROOT / 'tests')!r}); import importlib; "
-                "from ext_util import enable_extension; m = enable_extension(); "
+                "from support.ext_util import enable_extension; m = enable_extension(); "
                 "sys.exit(importlib.import_module(m + '.operators.batch_cli').cli(['worker']))")
         args = argparse.Namespace(inputs=[{str(takes / 'c.csv')!r}], output_dir={str(out2)!r}, format="blend",
                                   jobs=1, render=False, overwrite=False, resume=False, report=None,

@@ -20,10 +20,10 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-import blender_scene_util as bsu  # noqa: E402
+from support import blender_scene_util as bsu  # noqa: E402
 from conftest import MODELS, SALSA  # noqa: E402
-from ext_util import enable_extension, import_from_extension  # noqa: E402
-from helpers import quat_angle_deg  # noqa: E402
+from support.ext_util import enable_extension, import_from_extension  # noqa: E402
+from support.helpers import quat_angle_deg  # noqa: E402
 
 from types import SimpleNamespace  # noqa: E402
 
@@ -134,8 +134,8 @@ def test_import_csv_makes_keyed_empties(files):
         assert np.all(np.abs(np.sum(quat * q_b, -1)) > 1 - 1e-6)
         assert np.all(tracked == 1.0)
     # Read back for synthesis: the same take in motion space.
-    take_io = import_from_extension("operators.take_io")
-    back = take_io.take_from_collection(bpy.context, coll)
+    take_collection = import_from_extension("operators.take_collection")
+    back = take_collection.take_from_collection(bpy.context, coll)
     np.testing.assert_allclose(back.positions, take30.positions, atol=1e-5)
     np.testing.assert_allclose(back.time - back.time[0], take30.time - take30.time[0], atol=1e-9)
     dots = np.abs(np.sum(back.quats * take30.quats, -1))
@@ -154,8 +154,8 @@ def test_import_lost_tracking_round_trip(files, tmp_path):
     write_take(path, Take(take.time, pos, q, {"height_m": 1.62}, ""))
     coll = _import(path)
     assert abs(coll.dancing_points.height - 1.62) < 1e-6
-    take_io = import_from_extension("operators.take_io")
-    back = take_io.take_from_collection(bpy.context, coll)
+    take_collection = import_from_extension("operators.take_collection")
+    back = take_collection.take_from_collection(bpy.context, coll)
     ref = resample_take(read_take(path))
     np.testing.assert_array_equal(back.valid, ref.valid)
     assert not ref.valid[:, 1].all()
@@ -166,8 +166,8 @@ def test_import_amc_matches_core(files):
     bsu.fresh_scene()
     coll = _import(SALSA / "60_10.amc")
     ref = resample_take(take_from_motion(load_amc(SALSA / "60_10.amc")))
-    take_io = import_from_extension("operators.take_io")
-    back = take_io.take_from_collection(bpy.context, coll)
+    take_collection = import_from_extension("operators.take_collection")
+    back = take_collection.take_from_collection(bpy.context, coll)
     assert back.n_frames == ref.n_frames
     np.testing.assert_allclose(back.positions, ref.positions, atol=1e-5)
 
@@ -352,8 +352,8 @@ def baked(files):
     """Import the CSV take, synthesise with the operator (defaults: foot locking on)."""
     scene = bsu.fresh_scene()
     coll = _import(files["csv"])
-    take_io = import_from_extension("operators.take_io")
-    take = take_io.take_from_collection(bpy.context, coll)
+    take_collection = import_from_extension("operators.take_collection")
+    take = take_collection.take_from_collection(bpy.context, coll)
     t0 = time.perf_counter()
     assert bpy.ops.dancing_points.synthesize(model_dir=MODELS) == {'FINISHED'}
     t_op = time.perf_counter() - t0
@@ -717,14 +717,14 @@ def test_bake_matches_the_command_line_duet(files):
 def test_edited_take_reads_its_keyframes(files):
     """The stored full-precision samples stand in for the keyframes only while the
     empties still show them: a moved device (an animator's edit) wins."""
-    take_io = import_from_extension("operators.take_io")
+    take_collection = import_from_extension("operators.take_collection")
     bsu.fresh_scene()
     coll = _import(files["csv"])
-    take = take_io.take_from_collection(bpy.context, coll)
-    assert take_io.stored_samples(coll, take.positions, take.quats) is not None
+    take = take_collection.take_from_collection(bpy.context, coll)
+    assert take_collection.stored_samples(coll, take.positions, take.quats) is not None
     moved = take.positions.copy()
     moved[5, 1] += 0.01  # the left hand 1 cm away on one frame
-    assert take_io.stored_samples(coll, moved, take.quats) is None
+    assert take_collection.stored_samples(coll, moved, take.quats) is None
 
 
 def test_headset_take_import_calibration_on_the_take(files, tmp_path):
@@ -740,8 +740,8 @@ def test_headset_take_import_calibration_on_the_take(files, tmp_path):
     coll = _import(xr)
     s = coll.dancing_points
     assert s.devices == 'openxr' and s.height == 0.0 and not s.use_floor_y and s.height_source == ""
-    take_io = import_from_extension("operators.take_io")
-    take = take_io.take_from_collection(bpy.context, coll)
+    take_collection = import_from_extension("operators.take_collection")
+    take = take_collection.take_from_collection(bpy.context, coll)
     assert take.meta["devices"] == "openxr"
     assert bpy.ops.dancing_points.synthesize(model_dir=MODELS, take=coll.name) == {'FINISHED'}
     runtime = import_from_extension("dancing_points_addon.runtime")
@@ -758,7 +758,7 @@ def test_headset_take_import_calibration_on_the_take(files, tmp_path):
         assert np.linalg.norm(bm.to_motion(np.array(head)) - duet.leader_positions[k, 15]) < 1e-3
     # the panel's floor and height reach the synthesis as given
     s.use_floor_y, s.floor_y, s.height = True, 0.02, 1.75
-    take = take_io.take_from_collection(bpy.context, coll)
+    take = take_collection.take_from_collection(bpy.context, coll)
     assert take.meta["floor_y"] == pytest.approx(0.02) and take.height == pytest.approx(1.75)
     assert bpy.ops.dancing_points.synthesize(model_dir=MODELS, take=coll.name) == {'FINISHED'}
     assert s.height_source == "given" and s.floor_source == "given" and s.floor_used == pytest.approx(0.02)

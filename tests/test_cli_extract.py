@@ -7,8 +7,8 @@ import pytest
 from conftest import SALSA, SOLO
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
-from helpers import (REJECTIONS, assert_bad_input, bad_number, broken_amc, irregular_take, quat_angle_deg, run_cli,
-                     short_bone, unknown_bone, write_case)
+from support.helpers import (REJECTIONS, assert_bad_input, bad_number, broken_amc, irregular_take, quat_angle_deg,
+                             run_cli, short_bone, unknown_bone, write_case)
 
 
 @pytest.fixture(scope="module")

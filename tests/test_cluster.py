@@ -16,7 +16,7 @@ stopped at its end (also when a test fails). On them:
 
 Dask is an optional dependency of the command line (requirements-dev.txt):
 this module is skipped only where it is not installed. The throughput figure
-is a benchmark: ``.venv/bin/python tests/bench_cluster.py``.
+is a benchmark: ``.venv/bin/python benchmarks/bench_cluster.py``.
 """
 import os
 import shutil
@@ -30,12 +30,13 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, ROOT
-from helpers import N60, cut, leftovers, make_takes, read_report
+from support.helpers import N60, cut, leftovers, make_takes, read_report
 
 distributed = pytest.importorskip("distributed", reason="dask's distributed package is not installed")
 
 from dancing_points_addon import batch  # noqa: E402
 from dancing_points_addon.batch import cluster as dp_cluster  # noqa: E402
+from dancing_points_addon.batch import cluster_connect, cluster_identity, cluster_worker  # noqa: E402
 from dancing_points_addon.formats.asf_amc import load_amc  # noqa: E402
 from dancing_points_addon.formats.take import take_from_motion, write_take  # noqa: E402
 
@@ -353,7 +354,7 @@ def test_worker_of_another_version_refuses(tmp_path, takes):
 
 def test_a_task_checks_the_identity(tmp_path, takes):
     """The check every task makes on its worker (for workers that join later): in-process."""
-    mine = dp_cluster.identity(MODELS)
+    mine = cluster_identity.identity(MODELS)
     spec = {"id": 0, "topic": None, "input": str(takes / "a.csv"), "input_name": "a.csv",
             "input_bytes": (takes / "a.csv").read_bytes(), "beside": None, "files": {}, "needs_bpy": False,
             "options": batch.options.job_options(
@@ -363,9 +364,9 @@ def test_a_task_checks_the_identity(tmp_path, takes):
     for other, why in [(dict(mine, version="9.9"), "this client 9.9"),
                        (dict(mine, code="0" * 64), "(code 000000000000)"),
                        (dict(mine, models="f" * 64), "has no models matching")]:
-        res = dp_cluster.run_take(dict(spec, identity=other))
+        res = cluster_worker.run_take(dict(spec, identity=other))
         assert res["status"] == "refused" and why in res["error"], res
-    res = dp_cluster.run_take(dict(spec, identity=mine))
+    res = cluster_worker.run_take(dict(spec, identity=mine))
     assert res["status"] == "ok" and res["frames"] == N60 // 2 and res["outputs"]["npz"][:2] == b"PK"
 
 
@@ -376,18 +377,18 @@ def test_bad_cluster_options(takes, tmp_path, monkeypatch):
         res = run_cli(*batch_args(takes / "a.csv", tmp_path / "o", "npz", "--cluster", value), timeout=60)
         assert res.returncode == 2 and res.stderr.startswith("error: ") and frag in res.stderr, res.stderr
         assert len(res.stderr.splitlines()) == 1
-    assert dp_cluster.cluster_spec("farm-head") == "tcp://farm-head:8786"
-    assert dp_cluster.cluster_spec("10.0.0.5:9000") == "tcp://10.0.0.5:9000"
-    assert dp_cluster.cluster_spec("local") == "local" and dp_cluster.cluster_spec("local:3") == "local:3"
+    assert cluster_connect.cluster_spec("farm-head") == "tcp://farm-head:8786"
+    assert cluster_connect.cluster_spec("10.0.0.5:9000") == "tcp://10.0.0.5:9000"
+    assert cluster_connect.cluster_spec("local") == "local" and cluster_connect.cluster_spec("local:3") == "local:3"
     # nobody listening: one line (in-process, with a short connect timeout)
     import socket
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    monkeypatch.setattr(dp_cluster, "CONNECT_TIMEOUT", 2.0)
-    with pytest.raises(dp_cluster.ClusterError, match="cannot reach the Dask scheduler"):
-        dp_cluster.connect(f"tcp://127.0.0.1:{port}", MODELS)
+    monkeypatch.setattr(cluster_connect, "CONNECT_TIMEOUT", 2.0)
+    with pytest.raises(cluster_connect.ClusterError, match="cannot reach the Dask scheduler"):
+        cluster_connect.connect(f"tcp://127.0.0.1:{port}", MODELS)
     assert not (tmp_path / "o").exists()
 
 

@@ -18,7 +18,7 @@ from dancing_points_addon.resample import resample_take
 from dancing_points_addon.rotations import quat_to_matrix
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import FEET, JOINT_INDEX, TRACKED
-from helpers import run_cli
+from support.helpers import run_cli
 from test_runtime import test_take
 
 ARMS = [JOINT_INDEX[s + n] for s in "lr" for n in ("humerus", "radius", "hand", "fingers", "thumb")]

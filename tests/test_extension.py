@@ -11,8 +11,8 @@ import zipfile
 
 import pytest
 
-import ext_util
-from ext_util import ROOT
+from support import ext_util
+from support.ext_util import ROOT
 
 bpy = pytest.importorskip("bpy")
 
@@ -66,7 +66,7 @@ def test_blender_builds_package_without_dev_files(tmp_path):
     for required in ("blender_manifest.toml", "__init__.py", "preferences.py",
                      "operators/__init__.py", "panels/__init__.py", "dancing_points_addon/__init__.py"):
         assert required in names
-    excluded = ("training/", "tools/", "tests/", ".ci/", ".venv/", ".git", "docs/", "cache/", "out/")
+    excluded = ("training/", "tools/", "tests/", "benchmarks/", ".ci/", ".venv/", ".git", "docs/", "cache/", "out/")
     leaked = [n for n in names if n.startswith(excluded) or "__pycache__/" in n or n.endswith(".pyc")]
     assert not leaked, leaked
     # The core in the zip is the bpy-free runtime: no training-only module, no developer tool.
@@ -155,6 +155,6 @@ def test_build_extension_bundles_models_and_wheels(tmp_path):
     assert not any(n.lower().startswith("wheels/numpy") for n in wheels)
     assert any(n.startswith("wheels/python_osc-1.10.2-") and n.endswith("-none-any.whl") for n in wheels), wheels
     assert sorted("wheels/" + w.split("/")[-1] for w in manifest["wheels"]) == sorted(wheels)
-    leaked = [n for n in names if n.startswith(("training/", "tests/", ".ci/", "docs/", "cache/"))
+    leaked = [n for n in names if n.startswith(("training/", "tests/", "benchmarks/", ".ci/", "docs/", "cache/"))
               or n.lower().endswith((".amc", ".asf", ".glb", ".fbx", ".npz"))]
     assert not leaked, leaked

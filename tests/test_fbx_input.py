@@ -28,12 +28,12 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, SALSA
-from helpers import read_report, run_batch, run_cli, run_cli_long
+from support.helpers import read_report, run_batch, run_cli, run_cli_long
 
 bpy = pytest.importorskip("bpy")
 
-import blender_scene_util as bsu  # noqa: E402
-from ext_util import import_from_extension  # noqa: E402
+from support import blender_scene_util as bsu  # noqa: E402
+from support.ext_util import import_from_extension  # noqa: E402
 
 from dancing_points_addon.errors import InputError  # noqa: E402
 from dancing_points_addon.formats.bvh import write_bvh  # noqa: E402
@@ -92,11 +92,11 @@ def _npz_diff(path, ref):
 
 
 def _blender_import(path, **kw):
-    take_io = import_from_extension("operators.take_io")
+    take_collection = import_from_extension("operators.take_collection")
     bsu.fresh_scene()
     assert bpy.ops.dancing_points.import_take(filepath=str(path), **kw) == {'FINISHED'}
     coll = next(c for c in bpy.data.collections if c.dancing_points.kind == 'TAKE')
-    take = take_io.take_from_collection(bpy.context, coll)
+    take = take_collection.take_from_collection(bpy.context, coll)
     return take, Synthesizer(SynthesisOptions(models=MODELS, height=take.height)).synthesize(take)
 
 
@@ -150,7 +150,7 @@ def test_a_folder_mixing_fbx_bvh_csv_amc_in_one_batch(files, tmp_path):
     shutil.copy(d / "seg.fbx", takes / "a.fbx")
     shutil.copy(d / "seg.bvh", takes / "b.bvh")
     shutil.copy(d / "seg.csv", takes / "c.csv")
-    from helpers import trim_amc
+    from support.helpers import trim_amc
     trim_amc(SALSA / "60_08.amc", takes / "d.amc", 240)
     shutil.copy(SALSA / "60.asf", takes / "d.asf")
     for extra, out in (((), tmp_path / "out"), (("--cluster", "local:2"), tmp_path / "out_cluster")):

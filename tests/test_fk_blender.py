@@ -14,8 +14,8 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from blender_util import (asf_axes, asf_local_matrix, build_asf_armature,  # noqa: E402
-                          empty_scene, pose_points)
+from support.blender_util import (asf_axes, asf_local_matrix, build_asf_armature,  # noqa: E402
+                                  empty_scene, pose_points)
 from mathutils import Vector  # noqa: E402
 
 from dancing_points_addon.formats.asf_amc import load_amc, parse_amc, parse_asf  # noqa: E402

@@ -16,7 +16,7 @@ import warnings
 import numpy as np
 
 from conftest import SALSA
-from helpers import run_cli
+from support.helpers import run_cli
 from dancing_points_addon.errors import InputError
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.bvh import write_bvh

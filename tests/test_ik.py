@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 
 from training import metrics
-from helpers import bone_twist_deg
+from support.helpers import bone_twist_deg
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.foot_lock import FootLocker
-from dancing_points_addon.ik import EndEffectorIK, rotation_between, two_bone_s, two_bone_ik
+from dancing_points_addon.ik import EndEffectorIK, rotation_between, two_bone_ik
+from dancing_points_addon.scalar_kernels import two_bone_s
 from dancing_points_addon.representation import contact_labels, floor_levels
 from dancing_points_addon.skeleton import (FEET, JOINT_INDEX, JOINT_NAMES, PARENTS, TRACKED,
                                            bone_lengths_from_positions)

@@ -27,7 +27,8 @@ from dancing_points_addon.calibration import headset_take
 from dancing_points_addon.formats.take import parse_take_bytes, read_take, take_to_text, write_take
 from dancing_points_addon.live import protocol as P
 from dancing_points_addon.live.receiver import Counters, PortInUse, Sample, SampleAssembler, UdpReceiver
-from dancing_points_addon.live.session import CausalResampler, LiveOptions, LiveSession, as_read
+from dancing_points_addon.live.rows import CausalResampler, as_read
+from dancing_points_addon.live.session import LiveOptions, LiveSession
 from dancing_points_addon.live.stream import stream_rows, stream_take
 from dancing_points_addon.live.xr import motion_to_xr, xr_to_motion
 from dancing_points_addon.resample import resample_take

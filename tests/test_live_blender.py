@@ -23,9 +23,9 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-import blender_scene_util as bsu  # noqa: E402
+from support import blender_scene_util as bsu  # noqa: E402
 from conftest import MODELS, ROOT  # noqa: E402
-from ext_util import import_from_extension  # noqa: E402
+from support.ext_util import import_from_extension  # noqa: E402
 
 from dancing_points_addon.blender_math import C  # noqa: E402
 from dancing_points_addon.calibration import headset_take  # noqa: E402

@@ -112,7 +112,7 @@ def test_planted_states_are_what_the_locks_hold(sample, core_duet):
 # --------------------------------------------------------------------------- Blender
 
 def _mv():
-    from ext_util import import_from_extension
+    from support.ext_util import import_from_extension
     return import_from_extension("operators.method_view")
 
 
@@ -121,7 +121,7 @@ def scene_duet(core_duet):
     """The sample take imported and synthesised by the operators."""
     if bpy is None:
         pytest.skip("needs the bpy module")
-    import blender_scene_util as bsu
+    from support import blender_scene_util as bsu
 
     scene = bsu.fresh_scene()
     assert bpy.ops.dancing_points.import_take(filepath=str(SAMPLE)) == {'FINISHED'}
@@ -189,7 +189,7 @@ def test_trajectories_follow_the_frame(scene_duet):
 @needs_bpy
 def test_markers_follow_the_empties(scene_duet):
     scene, f0 = scene_duet["scene"], scene_duet["f0"]
-    from ext_util import import_from_extension
+    from support.ext_util import import_from_extension
     props = import_from_extension("operators.props")
     empties = props.device_objects(scene_duet["take"])
     markers = {o["dp_marks"]: o for o in scene_duet["objs"]["inputs"]}
@@ -265,7 +265,7 @@ def test_visibility_settings(scene_duet):
 
 @needs_bpy
 def test_method_panel(scene_duet):
-    import blender_scene_util as bsu
+    from support import blender_scene_util as bsu
     cls = bpy.types.Panel.bl_rna_get_subclass_py("VIEW3D_PT_dancing_points_method")
     assert cls is not None and cls.bl_parent_id == "VIEW3D_PT_dancing_points"
     fake = type("Fake", (), {"layout": bsu.RecordingLayout()})
@@ -276,7 +276,7 @@ def test_method_panel(scene_duet):
 
 @needs_bpy
 def test_workbench_render_shows_the_method_when_asked(scene_duet, tmp_path):
-    import blender_scene_util as bsu
+    from support import blender_scene_util as bsu
     scene = scene_duet["scene"]
     mid = scene_duet["f0"] + 200
     px = {}
@@ -327,7 +327,7 @@ def test_survives_save_and_reload(scene_duet, tmp_path):
 def test_scene_frame_rate_other_than_30(core_duet):
     """A 60 fps project that keeps its rate: a sample every two scene frames (the
     take's keys), the trajectories on the nearest sample."""
-    import blender_scene_util as bsu
+    from support import blender_scene_util as bsu
     scene = bsu.fresh_scene()
     scene.render.fps, scene.render.fps_base = 60, 1.0
     assert bpy.ops.dancing_points.import_take(filepath=str(SAMPLE), update_scene_fps=False) == {'FINISHED'}
@@ -351,7 +351,7 @@ def test_scene_frame_rate_other_than_30(core_duet):
 def short_amc(tmp_path_factory):
     if not SALSA.exists():
         pytest.skip(f"shared data not found at {SALSA}")
-    from helpers import trim_amc
+    from support.helpers import trim_amc
     d = tmp_path_factory.mktemp("dp_ghost")
     shutil.copy(SALSA / "60.asf", d / "60.asf")
     trim_amc(SALSA / "60_10.amc", d / "60_10.amc", 150)  # 2.5 s at 60 Hz
@@ -381,7 +381,7 @@ def _import_kept(path):
 
 @needs_bpy
 def test_amc_ghost(short_amc):
-    import blender_scene_util as bsu
+    from support import blender_scene_util as bsu
     bsu.fresh_scene()
     plain = bpy.ops.dancing_points.import_take(filepath=str(short_amc))
     assert plain == {'FINISHED'}
@@ -404,7 +404,7 @@ def test_amc_ghost(short_amc):
 
 @needs_bpy
 def test_bvh_ghost(short_amc, tmp_path):
-    import blender_scene_util as bsu
+    from support import blender_scene_util as bsu
     from dancing_points_addon.formats.asf_amc import load_amc
     from dancing_points_addon.formats.bvh import write_bvh
     bvh = tmp_path / "ghost.bvh"

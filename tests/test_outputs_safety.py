@@ -25,7 +25,7 @@ import pytest
 from conftest import MODELS, ROOT, SALSA
 from dancing_points_addon import batch, cli, nets
 from dancing_points_addon.errors import InputError
-from helpers import assert_bad_input, run_cli
+from support.helpers import assert_bad_input, run_cli
 
 SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"
 LOCK = ".dancing_points_batch.lock"  # (batch.LOCK_NAME)
@@ -590,7 +590,7 @@ def test_fbx_export_error_is_its_real_last_line(tmp_path):
         import importlib, json, sys
         sys.path.insert(0, {str(ROOT / 'tests')!r})
         import bpy
-        from ext_util import enable_extension
+        from support.ext_util import enable_extension
         mod = enable_extension()
         batch_cli = importlib.import_module(mod + ".operators.batch_cli")
         bpy.ops.wm.read_homefile(use_empty=True)

@@ -19,9 +19,9 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-import blender_scene_util as bsu  # noqa: E402
+from support import blender_scene_util as bsu  # noqa: E402
 from conftest import MODELS, ROOT  # noqa: E402
-from ext_util import import_from_extension  # noqa: E402
+from support.ext_util import import_from_extension  # noqa: E402
 
 from dancing_points_addon import blender_math as bm  # noqa: E402
 from dancing_points_addon.formats.inputs import load_input  # noqa: E402
@@ -260,7 +260,7 @@ def test_timing_24_and_60_fps_scenes():
     leader's head at the command line's duet's head at t; synthesis still reads
     the take's own samples exactly."""
     runtime = import_from_extension("dancing_points_addon.runtime")
-    take_io = import_from_extension("operators.take_io")
+    take_collection = import_from_extension("operators.take_collection")
     take30 = resample_take(load_input(str(SAMPLE)), 30.0)
     ref = runtime.Synthesizer(runtime.SynthesisOptions(models=MODELS, foot_lock=True)).synthesize(take30)
     t30 = np.arange(take30.n_frames) / 30.0
@@ -272,7 +272,7 @@ def test_timing_24_and_60_fps_scenes():
         n = int(np.ceil((take30.n_frames - 1) * fps / 30.0 - 1e-6)) + 1
         assert (scene.frame_start, scene.frame_end) == (1, n)
         coll = bpy.data.collections[TAKE]
-        back = take_io.take_from_collection(bpy.context, coll)
+        back = take_collection.take_from_collection(bpy.context, coll)
         np.testing.assert_array_equal(back.positions, take30.positions)  # the take's own samples
         np.testing.assert_allclose(back.quats, take30.quats, rtol=0, atol=1e-12)
         head = bpy.data.objects["Head"]

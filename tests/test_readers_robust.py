@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, SALSA
-from helpers import assert_bad_input, good_lines, irregular_take, row, run_cli, write_lines
+from support.helpers import assert_bad_input, good_lines, irregular_take, row, run_cli, write_lines
 from dancing_points_addon.errors import InputError
 from dancing_points_addon.formats.files import read_text
 from dancing_points_addon.formats.asf_amc import load_amc
@@ -450,8 +450,8 @@ def test_fifo_and_devices_rejected_before_opening(tmp_path):
 @pytest.fixture
 def blender():
     pytest.importorskip("bpy")
-    import blender_scene_util as bsu
-    from ext_util import enable_extension
+    from support import blender_scene_util as bsu
+    from support.ext_util import enable_extension
     enable_extension()
     bsu.fresh_scene()
     return bsu
@@ -482,8 +482,8 @@ def test_blender_import_applies_the_core_rules(blender, tmp_path):
 
 def test_blender_import_of_epoch_times(blender, sample, tmp_path):
     import bpy
-    from ext_util import import_from_extension
-    take_io = import_from_extension("operators.take_io")
+    from support.ext_util import import_from_extension
+    take_collection = import_from_extension("operators.take_collection")
     keys = []
     for name, take in (("zero", sample), ("epoch", _shifted(sample))):
         p = tmp_path / f"{name}.csv"
@@ -492,6 +492,6 @@ def test_blender_import_of_epoch_times(blender, sample, tmp_path):
         assert bpy.ops.dancing_points.import_take(filepath=str(p)) == {'FINISHED'}
         (coll,) = [c for c in bpy.data.collections if c.name not in before]
         assert coll.dancing_points.n_frames == 343
-        keys.append(take_io.take_from_collection(bpy.context, coll))
+        keys.append(take_collection.take_from_collection(bpy.context, coll))
     assert np.array_equal(keys[0].valid, keys[1].valid)
     assert np.nanmax(np.abs(keys[0].positions - keys[1].positions)) < 1e-6

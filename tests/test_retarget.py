@@ -36,7 +36,7 @@ import numpy as np
 import pytest
 
 from conftest import ASSETS, MODELS, SALSA
-from helpers import CM, SRC_POINTS, apose_rig, target_rig_from_bones
+from support.helpers import CM, SRC_POINTS, apose_rig, target_rig_from_bones
 from dancing_points_addon.formats import gltf_meshopt
 from dancing_points_addon import retarget as rt
 from dancing_points_addon.retarget.solver import interp_poly
@@ -276,9 +276,9 @@ except ImportError:  # the bpy-free tests above still run
     bpy = None
 
 if bpy is not None:
-    import blender_scene_util as bsu
-    from ext_util import import_from_extension
-    from retarget_util import baked_salsa_duet, check_rig, evaluate, points, reference
+    from support import blender_scene_util as bsu
+    from support.ext_util import import_from_extension
+    from support.retarget_util import baked_salsa_duet, check_rig, evaluate, points, reference
 
 
 def _build_apose_rig(name="UE Dancer", size=1.0, modes=('QUATERNION', 'XYZ', 'ZXY')):

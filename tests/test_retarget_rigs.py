@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from conftest import MODELS, SALSA
-from helpers import SRC_POINTS, TGT_POINTS, apose_rig, target_rig_from_bones
+from support.helpers import SRC_POINTS, TGT_POINTS, apose_rig, target_rig_from_bones
 from dancing_points_addon import retarget as rt
 from dancing_points_addon.retarget import rigify as rgf
 from dancing_points_addon.retarget.structure import structural_mapping
@@ -150,9 +150,9 @@ except ImportError:
     bpy = None
 
 if bpy is not None:
-    import blender_scene_util as bsu
-    from ext_util import import_from_extension
-    from retarget_util import baked_salsa_duet, check_rig, evaluate, points, reference
+    from support import blender_scene_util as bsu
+    from support.ext_util import import_from_extension
+    from support.retarget_util import baked_salsa_duet, check_rig, evaluate, points, reference
 
 METARIG_POINTS = {"lhip": "thigh.L", "rhip": "thigh.R", "head": "spine.006", "lwrist": "hand.L", "rwrist": "hand.R",
                   "lankle": "foot.L", "rankle": "foot.R", "lball": "toe.L", "rball": "toe.R"}
@@ -402,7 +402,7 @@ def test_batch_takes_rigify_and_made_up_rigs(rigs, tmp_path):
     not put in the scene."""
     if "rigify" not in rigs["rigs"]:
         pytest.skip(rigs.get("rigify_missing", "rig not built"))
-    from helpers import read_report, run_batch, run_bpy_script
+    from support.helpers import read_report, run_batch, run_bpy_script
 
     files = {}
     for kind in ("rigify", "odd"):  # as they are: retargeted once already (stored mapping and reference pose)

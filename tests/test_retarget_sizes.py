@@ -23,10 +23,10 @@ from conftest import MODELS, ROOT
 
 bpy = pytest.importorskip("bpy")
 
-import blender_scene_util as bsu  # noqa: E402
-from ext_util import import_from_extension  # noqa: E402
-from helpers import CM, SRC_POINTS, TGT_POINTS  # noqa: E402
-from retarget_util import check_rig, evaluate, points, reference, source_height  # noqa: E402
+from support import blender_scene_util as bsu  # noqa: E402
+from support.ext_util import import_from_extension  # noqa: E402
+from support.helpers import CM, SRC_POINTS, TGT_POINTS  # noqa: E402
+from support.retarget_util import check_rig, evaluate, points, reference, source_height  # noqa: E402
 
 SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"
 METARIG_POINTS = {"lhip": "thigh.L", "rhip": "thigh.R", "head": "spine.006", "lwrist": "hand.L", "rwrist": "hand.R",

@@ -12,7 +12,7 @@ from dancing_points_addon.formats.take import Take, read_take, take_from_motion,
 from dancing_points_addon.nets import MODEL_DIR, ROLE_DIRS, check_models
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import TRACKED, Motion
-from helpers import run_cli
+from support.helpers import run_cli
 from training.dataset import split_range
 
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from conftest import SALSA, SOLO
-from helpers import (IDENT, REJECTIONS, axis_quat, good_lines, irregular_take, quat_angle_deg,
-                     row, write_case, write_lines)
+from support.helpers import (IDENT, REJECTIONS, axis_quat, good_lines, irregular_take, quat_angle_deg,
+                             row, write_case, write_lines)
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.errors import InputError
 from dancing_points_addon.resample import output_times, resample_motion, resample_take

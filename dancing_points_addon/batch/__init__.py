@@ -47,7 +47,7 @@ from .plan import (PART, check_not_inputs, discover, make_output_dirs, output_ba
 from .progress import Progress, eta, fmt_duration, result_line
 from .report import REPORT_NAME, build_report, check_report_path, is_report, summary_line, write_report
 from .scheduler import Batch
-from .cluster import cluster_spec
+from .cluster_connect import cluster_spec
 
 __all__ = ["add_arguments", "run",
            "FORMATS", "BPY_FORMATS", "CORE_INPUTS", "BPY_INPUTS", "REPORT_NAME", "PART", "LOCK_NAME",
@@ -164,7 +164,7 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
     check_models(model_dir, args.threads or 1)  # once, here: not every file against a damaged network
     cluster = None
     if cluster_addr:  # before any work: a cluster that cannot run this batch is one line, exit 2
-        from .cluster import connect
+        from .cluster_connect import connect
 
         cluster = connect(cluster_addr, model_dir, needs_bpy or fbx is not None, err=err)
     try:

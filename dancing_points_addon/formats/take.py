@@ -11,6 +11,10 @@ onto the target, so a failure never leaves a half-written take behind.
 Any supported input (take ``.csv``, CMU ``.amc``, ``.bvh``) becomes a take
 through :func:`~.inputs.load_input`, and every take meets the rules of
 :func:`~.inputs.check_take`; the bounds are in :mod:`.limits`.
+
+Over 500 lines: the take format is one unit, its :class:`Take`, reader, writer
+and extraction (the writer's text must read back as the reader reads it), and
+its names are imported from here throughout the project (training included).
 """
 from __future__ import annotations
 

@@ -12,7 +12,7 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
    runtime stands in for lost devices). A sample whose time is not after the
    last row's is late: dropped and counted. Times are kept to the microsecond
    and every value as a take file writes and reads it back
-   (:func:`as_written`), so the rows *are* the take file.
+   (:func:`.rows.as_written`), so the rows *are* the take file.
 2. **the start**: the take starts at the first row where all three devices
    are tracked, so it has no lost start to fill (offline synthesis fills one by
    looking ahead, which a live loop cannot).
@@ -25,7 +25,7 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
    ``floor_y`` to 0.1 mm), so the take reads back with the same calibration.
 4. **frames**: each row is read as the calibration says, as
    :func:`~..calibration.apply_calibration` reads a take, then resampled
-   causally to 30 Hz (:class:`CausalResampler`: the frames of
+   causally to 30 Hz (:class:`.rows.CausalResampler`: the frames of
    :func:`~..resample.resample_take`, each made once the row after it has
    come) and synthesised (:meth:`~..runtime.Synthesizer.step_points`).
 
@@ -47,12 +47,11 @@ import numpy as np
 from ..calibration import Calibration, apply_calibration
 from ..errors import UserError
 from ..formats.take import Take
-from ..resample import NET_FPS, _bracket_rel, _tolerance, output_offsets
-from ..rotations import quat_slerp
+from ..resample import NET_FPS, output_offsets
 from . import ROLES
 from .receiver import Counters, Sample
+from .rows import CausalResampler, Rows, as_read, as_written
 SOURCE_DEVICES = {"vmc": "openxr", "osc": "joints", "xr": "openxr"}
-_IDENT = np.array([1.0, 0.0, 0.0, 0.0])
 
 
 @dataclass(frozen=True)
@@ -89,121 +88,6 @@ class LiveOptions:
                                 foot_lock=self.foot_lock, hand_ik=self.hand_ik, floor_y=self.floor_y,
                                 devices=self.devices, head_offset=self.head_offset, hand_offset=self.hand_offset,
                                 follow_devices=self.follow_devices, role=self.role)
-
-
-def as_written(positions, quats):
-    """One row's ``(positions (3, 3), quats (3, 4))`` as
-    :func:`~..formats.take.write_take` writes it (ten significant digits; a
-    device with any non-finite value lost in all seven). Written again, the
-    same text."""
-    vals = np.concatenate([np.asarray(positions, np.float64), np.asarray(quats, np.float64)], axis=-1)
-    dev = np.array([float("%.10g" % v) for v in vals.ravel().tolist()]).reshape(3, 7)
-    dev[np.isnan(dev).any(-1)] = np.nan
-    return dev[:, :3].copy(), dev[:, 3:].copy()
-
-
-def as_read(quats):
-    """Written quaternions ``(..., 4)`` as :func:`~..formats.take.read_take` gives them: normalised."""
-    with np.errstate(invalid="ignore"):
-        return quats / np.linalg.norm(quats, axis=-1)[..., None]
-
-
-class CausalResampler:
-    """The 30 Hz frames of :func:`~..resample.resample_take`, each made as soon
-    as a row after it has come: output frame ``k`` at ``k / fps`` after the first
-    row, positions linear and rotations slerped between the rows around it, lost
-    where a row it takes weight from is lost. Rows are times relative to the
-    first (which is 0), strictly increasing."""
-
-    def __init__(self, fps: float = NET_FPS):
-        self.fps = float(fps)
-        self.k = 0  # the next frame to make
-        self.prev = None  # (t, pos, quat, valid) of the row before the last
-        self.last = None
-        self.t_first = None
-
-    def _row(self, t, pos, quat, valid):
-        v = np.asarray(valid, dtype=bool)
-        return (float(t), np.where(v[:, None], pos, 0.0), np.where(v[:, None], quat, _IDENT), v)
-
-    def add(self, t, pos, quat, valid) -> list:
-        """Rows in order; returns the frames now made: ``(k, pos (3, 3), quat (3, 4), valid (3,))``."""
-        row = self._row(t, pos, quat, valid)
-        if self.t_first is None:
-            self.t_first = row[0]
-        self.prev, self.last = self.last, row
-        if self.prev is None:
-            return []
-        tol = _tolerance(np.array([self.t_first, row[0]]))
-        out = []
-        while self.k / self.fps + tol < row[0]:
-            out.append(self._frame(self.k, self.prev, self.last, tol))
-            self.k += 1
-        return out
-
-    def _frame(self, k, r0, r1, tol):
-        off = k / self.fps
-        rel = np.array([r0[0], r1[0]])
-        _, a = _bracket_rel(rel, np.array([off]), tol)
-        return self._interp(k, r0, r1, float(a[0]))
-
-    @staticmethod
-    def _interp(k, r0, r1, a):
-        _, p0, q0, v0 = r0
-        _, p1, q1, v1 = r1
-        ok = (v0 | (a >= 1.0)) & (v1 | (a <= 0.0))
-        p = p0 + (p1 - p0) * a
-        q = quat_slerp(q0, q1, np.full(3, a))
-        p[~ok] = np.nan
-        q[~ok] = np.nan
-        return k, p, q, ok
-
-    def finish(self, times, positions, quats) -> list:
-        """The frames still to make at the end of a take of these rows (all of
-        it, relative times): those :func:`~..resample.resample_take` makes up to
-        the last row, bracketed over the whole take as it does."""
-        times = np.asarray(times, dtype=np.float64)
-        offs = output_offsets(times, self.fps)
-        if self.k >= len(offs) or len(times) < 2:
-            return []
-        tol = _tolerance(times)
-        ks = np.arange(self.k, len(offs))
-        i, a = _bracket_rel(times - times[0], offs[ks], tol)
-        valid = np.isfinite(positions).all(-1) & np.isfinite(quats).all(-1)
-        out = []
-        for k, ii, aa in zip(ks.tolist(), i.tolist(), a.tolist()):
-            r0 = self._row(times[ii], positions[ii], quats[ii], valid[ii])
-            r1 = self._row(times[ii + 1], positions[ii + 1], quats[ii + 1], valid[ii + 1])
-            out.append(self._interp(k, r0, r1, aa))
-        self.k = len(offs)
-        return out
-
-
-class _Rows:
-    """The take's rows so far, in arrays that grow by doubling."""
-
-    def __init__(self):
-        self.n = 0
-        self.time = np.empty(1024)
-        self.pos = np.empty((1024, 3, 3))
-        self.quat = np.empty((1024, 3, 4))
-        self.arrival = np.empty(1024)  # this machine's clock when the row was made (for latency)
-
-    def append(self, t, pos, quat, arrival):
-        if self.n == len(self.time):
-            m = 2 * self.n
-            for name in ("time", "pos", "quat", "arrival"):
-                old = getattr(self, name)
-                new = np.empty((m,) + old.shape[1:])
-                new[:self.n] = old[:self.n]
-                setattr(self, name, new)
-        self.time[self.n], self.pos[self.n], self.quat[self.n], self.arrival[self.n] = t, pos, quat, arrival
-        self.n += 1
-
-    def take(self, n=None, meta=None) -> Take:
-        """The first ``n`` rows as a take file reads them back."""
-        n = self.n if n is None else n
-        return Take(self.time[:n].copy(), self.pos[:n].copy(), as_read(self.quat[:n]), dict(meta or {}))
 
 
 @dataclass
@@ -244,7 +128,7 @@ class LiveSession:
         self.counters = counters or Counters()
         self.clock = clock
         self.describe = describe
-        self.rows = _Rows()
+        self.rows = Rows()
         self.t_first = None  # the clock's time of the take's first row
         self.stream_meta = {}
         self.calibration = None

@@ -12,7 +12,8 @@ from ...dancing_points_addon.retarget import RetargetError
 from ...dancing_points_addon.retarget import rigify as rgf
 from ...dancing_points_addon.errors import UserError, error_message
 from .. import bake
-from ..props import ROLE_PROP, ROLES, is_duet
+from ..kinds import is_duet
+from ..props import ROLE_PROP, ROLES
 from . import apply
 from .keying import key_rig, keyed_world
 from .mapping import mapping_for, stored_mapping

@@ -10,7 +10,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from ...dancing_points_addon import retarget as rt
 from ...dancing_points_addon.retarget import RetargetError
 from ...dancing_points_addon.errors import error_message
-from ..props import is_duet
+from ..kinds import is_duet
 from .jobs import hide_duet_bodies, retarget_duet_onto, retarget_one, retarget_pair
 from ...dancing_points_addon.retarget.structure import describe, structural_mapping
 from .mapping import CONVENTION_PROP, guess_mapping, mapping_for, set_mapping, stored_mapping

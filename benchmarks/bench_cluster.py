@@ -1,6 +1,6 @@
 """Benchmark: the overhead of a Dask cluster, ``--cluster`` (two workers) vs ``--jobs 2`` on this machine.
 
-    .venv/bin/python tests/bench_cluster.py [--models DIR] [--rounds 3] [--formats npz,blend]
+    .venv/bin/python benchmarks/bench_cluster.py [--models DIR] [--rounds 3] [--formats npz,blend]
 
 The takes are 8 real CMU salsa takes (``60_01.amc`` .. ``60_08.amc``, whole,
 28-57 s each), converted by ``python -m dancing_points_addon batch`` as a user
@@ -39,7 +39,8 @@ import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from helpers import busy_seconds, model_dir, proc_table  # noqa: E402
+sys.path.insert(0, str(ROOT / "tests"))  # the tests' support package
+from support.helpers import busy_seconds, model_dir, proc_table  # noqa: E402
 from dancing_points_addon.argtypes import positive_int  # noqa: E402
 
 SALSA = pathlib.Path(os.environ.get("DP_SHARED", ROOT.parent / "shared")) / "data" / "cmu_salsa"

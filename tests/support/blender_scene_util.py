@@ -5,7 +5,7 @@ import numpy as np
 
 import bpy
 
-from ext_util import MODULE, enable_extension, import_from_extension
+from .ext_util import MODULE, enable_extension, import_from_extension
 
 ID_COLLECTIONS = ("objects", "meshes", "armatures", "actions", "materials", "collections", "cameras",
                   "lights", "images")

@@ -9,7 +9,7 @@ exactly the way Blender loads an installed extension (relative imports,
 
 Reuse from any test::
 
-    from ext_util import enable_extension, dp_extension   # fixture
+    from support.ext_util import enable_extension, dp_extension   # fixture
 
     def test_something(dp_extension):          # dp_extension == module name
         import bpy
@@ -29,7 +29,7 @@ import sys
 import tempfile
 
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 EXTENSION_ID = "dancing_points"
 REPO_MODULE = "dancing_points_tests"
 REPO_NAME = "Dancing Points tests"

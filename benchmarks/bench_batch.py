@@ -1,6 +1,6 @@
 """Benchmark: batch throughput with ``--jobs 2`` vs ``--jobs 1`` on the same 8 takes.
 
-    .venv/bin/python tests/bench_batch.py [--models DIR] [--jobs 2] [--formats npz,bvh,blend,fbx]
+    .venv/bin/python benchmarks/bench_batch.py [--models DIR] [--jobs 2] [--formats npz,bvh,blend,fbx]
 
 The takes are 8 real CMU salsa takes (``60_01.amc`` .. ``60_08.amc``, whole,
 28-57 s each), converted to npz by ``python -m dancing_points_addon batch`` as a
@@ -25,7 +25,8 @@ import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from helpers import busy_seconds, model_dir  # noqa: E402
+sys.path.insert(0, str(ROOT / "tests"))  # the tests' support package
+from support.helpers import busy_seconds, model_dir  # noqa: E402
 from dancing_points_addon.argtypes import positive_int  # noqa: E402
 SALSA = pathlib.Path(os.environ.get("DP_SHARED", ROOT.parent / "shared")) / "data" / "cmu_salsa"
 GOAL = 1.7

@@ -1,6 +1,6 @@
 """Benchmark: a 60 s take through the ``synthesize`` command line, end to end.
 
-    .venv/bin/python tests/bench_cli.py [--rounds 3] [--seconds 60]
+    .venv/bin/python benchmarks/bench_cli.py [--rounds 3] [--seconds 60]
 
 Builds a 60 s three-point take at 60 Hz from real CMU salsa mocap (the leader
 of take 08, 57 s, continued by the start of take 09), writes it as a take

@@ -7,9 +7,9 @@ import bpy
 import numpy as np
 
 from dancing_points_addon import retarget as rt
-from ext_util import import_from_extension
+from .ext_util import import_from_extension
 
-from helpers import CM, SECONDS, SRC_POINTS, START, TGT_POINTS, cut
+from .helpers import CM, SECONDS, SRC_POINTS, START, TGT_POINTS, cut
 
 
 def baked_salsa_duet(folder, models):
@@ -20,7 +20,7 @@ def baked_salsa_duet(folder, models):
     from dancing_points_addon.formats.asf_amc import load_amc
     from dancing_points_addon.formats.take import take_from_motion, write_take
 
-    import blender_scene_util as bsu
+    from . import blender_scene_util as bsu
 
     m = load_amc(SALSA / "60_10.amc")
     csv = folder / "salsa_5s.csv"

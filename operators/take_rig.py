@@ -1,0 +1,196 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""The three points of a BVH or FBX file through Blender's own importers
+(:func:`read_rig_take`, for ``bpy.ops.dancing_points.import_take``,
+:mod:`.take_io`); the imported rig is removed again.
+
+Head point = head of bone ``Head``; hands = head of ``LeftFingerBase`` /
+``RightFingerBase`` (the end of ``lwrist``) for the CMU-converted naming, else
+head of ``LeftHand`` / ``RightHand`` (the wrist; Mixamo and generic namings).
+Device rotations: the bone's world rotation relative to its rest pose
+(``Rpose · Rrestᵀ``, independent of bone roll), converted to motion space;
+the head device is that of bone ``Head`` composed with Ry(180°)
+(``take.take_from_tracked``: the device looks along −Z, the skull faces +Z),
+so a rig whose rest pose is the SPEC's (upright, facing +Z in the file's
+Y-up space: the CMU conversion, Mixamo's T-pose) gives SPEC §3 head
+quaternions exactly. When the rest pose is not that (e.g. an FBX whose rest
+pose is some frame of the dance, as Blender's FBX exporter writes an
+unskinned armature), each bone's facing is calibrated against the body
+(hips, else shoulders) over the clip instead, with a warning
+(``blender_math.rig_rotations``).
+"""
+
+import bpy
+import numpy as np
+
+from ..dancing_points_addon import blender_math as bm
+from ..dancing_points_addon.errors import InputError
+from ..dancing_points_addon.formats.files import regular_file
+from ..dancing_points_addon.formats.naming import rig_side_bones, rig_tracked_bones
+from ..dancing_points_addon.formats.limits import check_duration, check_rate
+from ..dancing_points_addon.formats.take import take_from_tracked
+from ..dancing_points_addon.formats.units import unit_scale_for_height
+from . import compat
+
+
+def _snapshot():
+    colls = ("objects", "meshes", "armatures", "actions", "materials", "images", "textures",
+             "cameras", "lights", "collections", "node_groups")
+    return {c: set(getattr(bpy.data, c)[:]) for c in colls}
+
+
+def _remove_new(before, keep=()):
+    new = []
+    for c, old in before.items():
+        new.extend(x for x in getattr(bpy.data, c)[:] if x not in old and x not in keep)
+    if new:
+        bpy.data.batch_remove(new)
+
+
+def _scene_state(scene):
+    r = scene.render
+    return (r.fps, r.fps_base, scene.frame_start, scene.frame_end, scene.frame_current)
+
+
+def _restore_scene_state(scene, state):
+    r = scene.render
+    r.fps, r.fps_base, scene.frame_start, scene.frame_end, frame = state
+    scene.frame_set(frame)
+
+
+def _precheck(path, ext, input_fps=None):
+    """Reject a malformed file with a one-line message before Blender's importer
+    sees it (the core BVH parser names the line and checks the frame rate and
+    duration; FBX: binary files only)."""
+    regular_file(path, "a take file", missing="no such file")
+    if ext == ".bvh":
+        from ..dancing_points_addon.formats import bvh as core_bvh
+        try:
+            with np.errstate(all="ignore"):
+                data = core_bvh.parse_bvh(path, input_fps=input_fps or None)
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(path, f"cannot read BVH file ({type(exc).__name__}: {exc})") from None
+        if rig_tracked_bones(data.names) is None:
+            raise InputError(path, "cannot find the head and hand joints: expected the CMU-converted naming "
+                                   "(Head, LeftHand, LeftFingerBase, ...) or Mixamo (mixamorig:Head, "
+                                   "mixamorig:LeftHand, ...)")
+    elif ext == ".fbx":
+        try:
+            with open(path, "rb") as fh:
+                magic = fh.read(18)
+        except OSError as exc:
+            raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
+        if magic != b"Kaydara FBX Binary":
+            raise InputError(path, "not a binary FBX file (Blender's importer reads binary FBX only)")
+
+
+def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up='Y', units='AUTO',
+                  ghost=None):
+    """A BVH/FBX file through Blender's importer -> :class:`Take` (motion space).
+
+    Everything the importer made is removed again and the scene's frame rate,
+    range and current frame are restored, whatever happens; except, when
+    ``ghost`` is a dict and the file was read, the source rig and its children
+    (with their data, materials and actions), described in ``ghost``
+    (``objects``, ``first_frame``, ``rate``, ``scale``) for :func:`keep_ghost`."""
+    _precheck(path, ext, input_fps)
+    scene = context.scene
+    before = _snapshot()
+    state = _scene_state(scene)
+    keep = set()
+    try:
+        try:
+            if ext == ".bvh":
+                res = bpy.ops.import_anim.bvh(filepath=path, axis_forward=axis_forward, axis_up=axis_up,
+                                              update_scene_fps=True, update_scene_duration=False,
+                                              use_fps_scale=False, global_scale=1.0)
+            else:
+                res = bpy.ops.import_scene.fbx(filepath=path, use_anim=True, ignore_leaf_bones=False,
+                                               automatic_bone_orientation=False)
+        except RuntimeError as exc:  # the importer's own error report
+            raise InputError(path, f"Blender's {ext[1:].upper()} importer failed: {compat.operator_error_text(exc)}") from None
+        if 'FINISHED' not in res:
+            raise InputError(path, f"Blender's {ext[1:].upper()} importer could not read the file")
+        file_fps = scene.render.fps / scene.render.fps_base
+        arms = [o for o in bpy.data.objects if o not in before["objects"] and o.type == 'ARMATURE']
+        found = None
+        for arm in arms:
+            spec = rig_tracked_bones([b.name for b in arm.data.bones])
+            if spec is not None:
+                found = (arm, spec)
+                break
+        if found is None:
+            raise InputError(path, "no armature with a Head bone and hand bones (expected the CMU-converted "
+                                   "naming: Head, LeftHand, LeftFingerBase, ... or Mixamo: mixamorig:Head, "
+                                   "mixamorig:LeftHand, ...)")
+        arm, (point_bones, rot_bones, naming) = found
+        side_bones = rig_side_bones([b.name for b in arm.data.bones])
+        action = arm.animation_data.action if arm.animation_data else None
+        if action is None:
+            raise InputError(path, "the file has no animation")
+        f0, f1 = (int(round(x)) for x in action.frame_range)
+        if f1 - f0 + 1 < 2:
+            raise InputError(path, f"only {f1 - f0 + 1} frame(s); a take needs at least 2")
+        # The same bounds as the core readers, before a frame is evaluated.
+        rate = (check_rate(path, input_fps) if input_fps and input_fps > 0 else
+                check_rate(path, file_fps, what="the file's frame rate (set Input FPS to override it)"))
+        check_duration(path, (f1 - f0) / rate, what=f"the animation ({f1 - f0 + 1} frames at {rate:g} fps)")
+        frames = np.arange(f0, f1 + 1)
+        # Rest pose (world, Blender space): bone frames, size, and whether it is the SPEC rest pose.
+        mw = np.array(arm.matrix_world)
+        bones = arm.data.bones
+
+        def rest_point(name):
+            return (mw @ np.array([*bones[name].head_local, 1.0]))[:3]
+
+        rest_rot = np.stack([(mw @ np.array(bones[b].matrix_local))[:3, :3] for b in rot_bones])
+        ends = np.array([[*bones[b].head_local, 1.0] for b in bones.keys()]
+                        + [[*bones[b].tail_local, 1.0] for b in bones.keys()]) @ mw.T
+        height = rest_point(point_bones[0])[2] - ends[:, 2].min()
+        scale = unit_scale_for_height(height) if units == 'AUTO' else 1.0
+        rest_ok = side_bones is not None and bm.rest_faces_spec(
+            bm.to_motion(rest_point(side_bones[0])), bm.to_motion(rest_point(side_bones[1])),
+            bm.to_motion(rest_point(point_bones[0])))
+        if side_bones is None:
+            side_bones = (point_bones[1], point_bones[2])  # only used if the rest pose is unusable
+        T = len(frames)
+        pts = np.empty((T, 5, 3))
+        world = np.empty((T, 3, 3, 3))
+        depsgraph = context.evaluated_depsgraph_get()
+        names = tuple(point_bones) + tuple(side_bones)
+        for i, f in enumerate(frames):
+            scene.frame_set(int(f))
+            ev = arm.evaluated_get(depsgraph)
+            mw_t = np.array(ev.matrix_world)
+            pb = ev.pose.bones
+            for d, name in enumerate(names):
+                pts[i, d] = (mw_t @ np.array([*pb[name].head, 1.0]))[:3]
+            for d in range(3):
+                world[i, d] = (mw_t @ np.array(pb[rot_bones[d]].matrix))[:3, :3]
+        pts_m = bm.to_motion(pts * scale)
+        # Bone frames (columns = local axes in world) to motion space: C^T · W.
+        world_m = bm.C.T @ world
+        rest_m = bm.C.T @ rest_rot
+        rot = bm.rig_rotations(world_m, rest_m, pts_m[:, 3], pts_m[:, 4], rest_ok)
+        time = (frames - frames[0]) / rate
+        meta = {"source_naming": naming}
+        take = take_from_tracked(time, pts_m[:, :3], rot[:, 0], rot[:, 1], rot[:, 2], meta, path)
+        take.meta["source_fps"] = rate
+        if not rest_ok:
+            take.meta["rotation_estimate"] = "body"
+        if ghost is not None:
+            objs = [arm] + list(arm.children_recursive)
+            ghost.update(objects=objs, first_frame=int(f0), rate=float(rate), scale=float(scale))
+            for obj in objs:
+                keep.add(obj)
+                if obj.data is not None:
+                    keep.add(obj.data)
+                    keep.update(m for m in getattr(obj.data, "materials", ()) if m is not None)
+                act = compat.assigned_action(obj)[0]
+                if act is not None:
+                    keep.add(act)
+        return take
+    finally:
+        _remove_new(before, keep)
+        _restore_scene_state(scene, state)
