@@ -161,8 +161,9 @@ def calibration_options(o) -> dict:
     options (parsed arguments or a batch job's dict)."""
     get = o.get if isinstance(o, dict) else (lambda k, d=None: getattr(o, k, d))
     tup = lambda v: None if v is None else tuple(float(c) for c in v)  # noqa: E731
-    return {"role": get("role"), "devices": get("devices"), "floor_y": get("floor_y"), "head_offset": tup(get("head_offset")),
-            "hand_offset": tup(get("hand_offset")), "follow_devices": not get("no_device_follow", False)}
+    return {"role": get("role"), "devices": get("devices"), "floor_y": get("floor_y"),
+            "head_offset": tup(get("head_offset")), "hand_offset": tup(get("hand_offset")),
+            "follow_devices": not get("no_device_follow", False)}
 
 
 def exit_for(exc: BaseException, err=None, debug: bool = False) -> int:

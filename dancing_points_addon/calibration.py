@@ -249,5 +249,5 @@ def headset_take(take: Take, hand_rotations=None, height=None, offsets: DeviceOf
     return Take(np.asarray(take.time, dtype=np.float64), poses, quats, meta, take.source)
 
 
-__all__ = ["headset_take", "Calibration", "DEVICE_KINDS", "ROLES", "check_role", "TRAIN_HEIGHT", "TRAIN_HEAD_HEIGHT", "apply_calibration", "calibrate",
-           "fill_lost_start", "floor_from_head", "height_from_head"]
+__all__ = ["headset_take", "Calibration", "DEVICE_KINDS", "ROLES", "check_role", "TRAIN_HEIGHT", "TRAIN_HEAD_HEIGHT",
+           "apply_calibration", "calibrate", "fill_lost_start", "floor_from_head", "height_from_head"]

@@ -31,7 +31,7 @@ vectorised numpy version of their two-bone solver.
 from __future__ import annotations
 
 from itertools import chain
-from math import cos, isfinite, radians, sin, sqrt
+from math import cos, isfinite, radians, sqrt
 
 import numpy as np
 
@@ -201,16 +201,16 @@ def _hinge_turns(sh, el, wr, nel, nwr, straight=0.05):
     by nearly half a turn, and flips. An arm (old or new) straighter than
     ``straight`` (sine of the elbow angle) turns by the minimal rotations
     (:func:`minimal_turns`)."""
-    u = sub3(el, sh); l = sub3(wr, el)
-    u2 = sub3(nel, sh); l2 = sub3(nwr, nel)
-    n = (u[1] * l[2] - u[2] * l[1], u[2] * l[0] - u[0] * l[2], u[0] * l[1] - u[1] * l[0])
-    n2 = (u2[1] * l2[2] - u2[2] * l2[1], u2[2] * l2[0] - u2[0] * l2[2], u2[0] * l2[1] - u2[1] * l2[0])
-    lu = sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) * sqrt(l[0] ** 2 + l[1] ** 2 + l[2] ** 2)
+    u, f = sub3(el, sh), sub3(wr, el)
+    u2, f2 = sub3(nel, sh), sub3(nwr, nel)
+    n = (u[1] * f[2] - u[2] * f[1], u[2] * f[0] - u[0] * f[2], u[0] * f[1] - u[1] * f[0])
+    n2 = (u2[1] * f2[2] - u2[2] * f2[1], u2[2] * f2[0] - u2[0] * f2[2], u2[0] * f2[1] - u2[1] * f2[0])
+    lu = sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) * sqrt(f[0] ** 2 + f[1] ** 2 + f[2] ** 2)
     nn = sqrt(n[0] ** 2 + n[1] ** 2 + n[2] ** 2)
     nn2 = sqrt(n2[0] ** 2 + n2[1] ** 2 + n2[2] ** 2)
     if lu >= 1e-12 and nn >= straight * lu and nn2 >= straight * lu:
         Fu, Fu2 = frame_s(*u, *n), frame_s(*u2, *n2)
-        Fl, Fl2 = frame_s(*l, *n), frame_s(*l2, *n2)
+        Fl, Fl2 = frame_s(*f, *n), frame_s(*f2, *n2)
         if Fu is not None and Fu2 is not None and Fl is not None and Fl2 is not None:
             return align_s(Fu, Fu2), align_s(Fl, Fl2)
     return minimal_turns(sh, el, wr, nel, nwr)
@@ -358,8 +358,8 @@ class EndEffectorIK:
         where that line's direction is ill-defined) or the swing 160° or more
         (where its axis is) — then two-bone IK from the swung arm with its
         elbow as the pole, each bone turning as a hinge (:func:`_hinge_turns`)."""
-        u, l, w = sub3(el, sh), sub3(wr, el), sub3(wr, sh)
-        arm = sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) + sqrt(l[0] ** 2 + l[1] ** 2 + l[2] ** 2)
+        u, f, w = sub3(el, sh), sub3(wr, el), sub3(wr, sh)
+        arm = sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) + sqrt(f[0] ** 2 + f[1] ** 2 + f[2] ** 2)
         wn = sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
         beta = smooth01((wn / max(arm, 1e-12) - cls.SWING_LO) / (cls.SWING_HI - cls.SWING_LO))
         d = sub3(target, sh)

@@ -19,8 +19,8 @@ def rot_between_s(ux, uy, uz, vx, vy, vz):
     nv = sqrt(vx * vx + vy * vy + vz * vz)
     if nu < 1e-12 or nv < 1e-12:
         return I3
-    ux /= nu; uy /= nu; uz /= nu
-    vx /= nv; vy /= nv; vz /= nv
+    ux, uy, uz = ux / nu, uy / nu, uz / nu
+    vx, vy, vz = vx / nv, vy / nv, vz / nv
     c = ux * vx + uy * vy + uz * vz
     if 1.0 + c < 1e-12:
         if abs(ux) < 0.9:
@@ -28,7 +28,7 @@ def rot_between_s(ux, uy, uz, vx, vy, vz):
         else:
             ax, ay, az = -uz, 0.0, ux  # u x (0,1,0)
         na = sqrt(ax * ax + ay * ay + az * az)
-        ax /= na; ay /= na; az /= na
+        ax, ay, az = ax / na, ay / na, az / na
         return (2 * ax * ax - 1, 2 * ax * ay, 2 * ax * az,
                 2 * ay * ax, 2 * ay * ay - 1, 2 * ay * az,
                 2 * az * ax, 2 * az * ay, 2 * az * az - 1)
@@ -108,7 +108,7 @@ def two_bone_points_s(hip, knee, ankle, target, pole):
             s = ex * nx + ey * ny + ez * nz
             bx, by, bz = ex - s * nx, ey - s * ny, ez - s * nz
             bn = sqrt(bx * bx + by * by + bz * bz)
-    bx /= bn; by /= bn; bz /= bn
+    bx, by, bz = bx / bn, by / bn, bz / bn
     return ((hx + a * nx + h * bx, hy + a * ny + h * by, hz + a * nz + h * bz),
             (hx + D * nx, hy + D * ny, hz + D * nz))
 

@@ -421,7 +421,7 @@ class DANCING_POINTS_OT_remove_stage(bpy.types.Operator):
 
 
 class DANCING_POINTS_OT_hide_in_previews(bpy.types.Operator):
-    """Hide your objects that stand where the dancers dance in Render Preview (they are not deleted; F12 and the viewport still show them)"""
+    """Hide your objects that stand where the dancers dance in Render Preview (they are not deleted; F12 and the viewport still show them)"""  # noqa: E501 (the tooltip: one line)
 
     bl_idname = "dancing_points.hide_in_previews"
     bl_label = "Hide in Previews"

@@ -109,7 +109,8 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
                 res = bpy.ops.import_scene.fbx(filepath=path, use_anim=True, ignore_leaf_bones=False,
                                                automatic_bone_orientation=False)
         except RuntimeError as exc:  # the importer's own error report
-            raise InputError(path, f"Blender's {ext[1:].upper()} importer failed: {compat.operator_error_text(exc)}") from None
+            why = compat.operator_error_text(exc)
+            raise InputError(path, f"Blender's {ext[1:].upper()} importer failed: {why}") from None
         if 'FINISHED' not in res:
             raise InputError(path, f"Blender's {ext[1:].upper()} importer could not read the file")
         file_fps = scene.render.fps / scene.render.fps_base

@@ -608,7 +608,8 @@ def test_output_names_and_temps(tmp_path):
     tasks = batch.plan([(str(tmp_path / "t.csv"), "")], str(tmp_path), "bvh")
     assert tasks[0].outputs == [str(tmp_path / "t_leader.bvh"), str(tmp_path / "t_follower.bvh")]
     pid = os.getpid()
-    assert tasks[0].temps == [str(tmp_path / f".t_leader.part-{pid}.bvh"), str(tmp_path / f".t_follower.part-{pid}.bvh")]
+    assert tasks[0].temps == [str(tmp_path / f".t_leader.part-{pid}.bvh"),
+                              str(tmp_path / f".t_follower.part-{pid}.bvh")]
     # existing outputs: failed / skipped (--resume) / replace (--overwrite; --resume over an incomplete set)
     (tmp_path / "t_leader.bvh").write_text("")
     args = ([(str(tmp_path / "t.csv"), "")], str(tmp_path), "bvh")

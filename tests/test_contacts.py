@@ -57,7 +57,8 @@ def test_contact_network_carries_each_dancers_floor(test_clips):
     for role in ("leader", "follower"):
         shipped = np.array(meta[role])
         true = np.median([floor_levels(getattr(c, role).positions[:, FEET, 1]) for c in clips], axis=0)
-        print(f"\n{role} floor levels (cm): shipped {np.round(shipped * 100, 1)}, test frames {np.round(true * 100, 1)}")
+        print(f"\n{role} floor levels (cm): shipped {np.round(shipped * 100, 1)}, "
+              f"test frames {np.round(true * 100, 1)}")
         assert np.abs(shipped - true).max() < 0.02
         assert shipped[0] > shipped[1] and shipped[2] > shipped[3]
 

@@ -11,8 +11,8 @@ from dancing_points_addon.calibration import (TRAIN_HEIGHT, apply_calibration, c
                                               height_from_head)
 from dancing_points_addon.errors import InputError
 from dancing_points_addon.formats.devices import DeviceOffsets, openxr_to_points
-from dancing_points_addon.formats.inputs import HAND_BONES, load_headset_input, load_input
-from dancing_points_addon.formats.take import Take, read_take, write_take
+from dancing_points_addon.formats.inputs import HAND_BONES, load_input
+from dancing_points_addon.formats.take import Take, read_take
 from dancing_points_addon.representation import DEVICE_FROM_HEAD
 from dancing_points_addon.resample import resample_take
 from dancing_points_addon.rotations import quat_to_matrix
@@ -203,7 +203,8 @@ def test_a_take_that_starts_lost_starts_where_the_dancer_is_first_seen(synth):
         pelvis = getattr(duet, role + "_positions")[:, 0]
         step = np.linalg.norm(np.diff(pelvis, axis=0), axis=-1).max()
         start = np.linalg.norm(pelvis[0, [0, 2]] - (3.0 + take.positions[45, 0, 0], -2.0 + take.positions[45, 0, 2]))
-        print(f"\n{role}: largest pelvis step {step:.3f} m, first pelvis {start:.2f} m from where the head is first seen")
+        print(f"\n{role}: largest pelvis step {step:.3f} m, "
+              f"first pelvis {start:.2f} m from where the head is first seen")
         assert step <= 0.3 and start < 1.5, role
 
 

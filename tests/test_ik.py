@@ -70,7 +70,8 @@ def test_two_bone_ik_lengths_reach_plane_and_rotations():
     nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
     assert np.abs(np.sum(nrm * (k2 - hip), -1)).max() < 1e-9
     # ... on the pole's side
-    perp = lambda v: v - np.sum(v * u, -1, keepdims=True) * u
+    def perp(v):
+        return v - np.sum(v * u, -1, keepdims=True) * u
     side = np.sum(perp(k2 - hip) * perp(pole - hip), -1)
     assert np.all(side[reach] > -1e-12)
     # rotations: proper, and they take old directions to new ones
@@ -127,13 +128,16 @@ def test_foot_locker_on_a_salsa_take(take):
         for n in ("femur", "tibia", "foot", "toes"):
             pert[:, J[s + n]] += d
     mask = np.ones(T, bool)
-    skate = lambda p: (lambda s, c: s / c)(*metrics.foot_skating(p, mask, floor))
+    def skate(p):
+        s, c = metrics.foot_skating(p, mask, floor)
+        return s / c
 
     out, outR, locks = _run_locker(FootLocker(), pert, rot, contacts)
 
     sk_gt, sk_in, sk_out = skate(gt), skate(pert), skate(out)
     # skating restricted to pairs where the ground truth says "contact"
-    feet_v = lambda p: np.linalg.norm(np.diff(p[:, FEET][..., [0, 2]], axis=0), axis=-1) * 3000.0
+    def feet_v(p):
+        return np.linalg.norm(np.diff(p[:, FEET][..., [0, 2]], axis=0), axis=-1) * 3000.0
     cpair = (contacts[1:] > 0.5) & (contacts[:-1] > 0.5)
     c_in, c_out = feet_v(pert)[cpair].mean(), feet_v(out)[cpair].mean()
     print(f"\nfoot skating (cm/s, SPEC metric): ground truth {sk_gt:.2f}, perturbed input {sk_in:.2f}, "
@@ -182,7 +186,8 @@ def test_foot_locker_on_a_salsa_take(take):
 
     # rotations stay rotations and agree with the positions as well as the input's did
     assert np.abs(outR @ np.swapaxes(outR, -1, -2) - np.eye(3)).max() < 1e-9
-    starts = lambda p: p[:, np.maximum(PARENTS, 0)]
+    def starts(p):
+        return p[:, np.maximum(PARENTS, 0)]
     for b in LEG_BONES:
         a_in = _angle_between(pert[:, b] - starts(pert)[:, b], rot[:, b] @ bv[b])
         a_out = _angle_between(out[:, b] - starts(out)[:, b], outR[:, b] @ bv[b])
@@ -679,8 +684,8 @@ def test_arm_turn_limit_passes_real_arms_and_slows_a_flip(take):
     chain = np.linalg.norm(Po[:, 1:] - Po[:, PARENTS[1:]], axis=-1)
     np.testing.assert_allclose(chain, np.linalg.norm(Pf[:, 1:] - Pf[:, PARENTS[1:]], axis=-1), atol=1e-9)
     g = Po[:, group] - Po[:, [J["lradius"]]]
-    np.testing.assert_allclose(np.einsum("tgi,tgi->tg", g, g), np.einsum("tgi,tgi->tg", Pf[:, group] - Pf[:, [J["lradius"]]],
-                                                                         Pf[:, group] - Pf[:, [J["lradius"]]]), atol=1e-9)
+    gf = Pf[:, group] - Pf[:, [J["lradius"]]]
+    np.testing.assert_allclose(np.einsum("tgi,tgi->tg", g, g), np.einsum("tgi,tgi->tg", gf, gf), atol=1e-9)
 
 
 def rotation_about(axis, angle):

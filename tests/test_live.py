@@ -24,7 +24,7 @@ import pytest
 
 from conftest import MODELS, ROOT
 from dancing_points_addon.calibration import headset_take
-from dancing_points_addon.formats.take import parse_take_bytes, read_take, take_to_text, write_take
+from dancing_points_addon.formats.take import parse_take_bytes, read_take, take_to_text
 from dancing_points_addon.live import protocol as P
 from dancing_points_addon.live.receiver import Counters, PortInUse, Sample, SampleAssembler, UdpReceiver
 from dancing_points_addon.live.rows import CausalResampler, as_read

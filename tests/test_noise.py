@@ -115,5 +115,6 @@ def test_two_micrometres_of_noise_move_no_joint_a_centimetre(salsa_dir, tmp_path
 def test_the_int8_compute_is_what_flipped(salsa_dir, tmp_path):
     # the same noise through the int8 compute: millimetres on every take, centimetres on some
     worst = _noise_runs(salsa_dir, tmp_path, "int8", takes=("02", "06", "07"))
-    print("\nint8 compute, 2 µm noise: " + ", ".join(f"{t} {r} {100 * d:.2f} cm" for (t, r), d in sorted(worst.items())))
+    print("\nint8 compute, 2 µm noise: "
+          + ", ".join(f"{t} {r} {100 * d:.2f} cm" for (t, r), d in sorted(worst.items())))
     assert max(worst.values()) > 0.02

@@ -54,7 +54,8 @@ def test_tiny_train_export_onnx_matches_torch(clips, tmp_path, kind):
     else:
         x, y, _ = tracking_samples(clips[:2], "leader")
         cls = TrackingNet if kind == "tracker" else VanillaTracker
-        model, n_in, keep, name = cls(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM), F.TRACK_IN, tracker_keep(), "tracker_leader"
+        model = cls(F.TRACK_IN, F.TRACK_OUT, 32, pose_dim=F.POSE_DIM)
+        n_in, keep, name = F.TRACK_IN, tracker_keep(), "tracker_leader"
     if kind == "placement":
         info = T.train_model(model, x, y, epochs=2, batch=64, w=w)
     else:
@@ -128,11 +129,12 @@ def test_tracker_losses_route_gradients_as_documented(clips):
 
 
 def test_mapping_norm_loss_measures_each_point_per_frame():
-    """The mapping's norm loss (the shipped recipe) takes the Euclidean length of each frame's root position, heading and three
-    tracked points per dancer, unsquared, and averages them: an error of (3, 4)
-    normalised units in one root position, or of (0, 3, 4) in one tracked
-    point, counts 5 over the 60 × 5 groups; spread over two groups it counts
-    each part's own length."""
+    """The mapping's norm loss (the shipped recipe) takes the Euclidean length
+    of each frame's root position, heading and three tracked points per
+    dancer, unsquared, and averages them: an error of (3, 4) normalised units
+    in one root position, or of (0, 3, 4) in one tracked point, counts 5 over
+    the 60 × 5 groups; spread over two groups it counts each part's own
+    length."""
     m = MappingNet(F.MAP_IN, F.MAP_OUT, 8, loss="norm")
     groups = 2 * F.FUTURE * 5
     yn = torch.zeros(1, F.MAP_OUT)

@@ -515,7 +515,8 @@ def main(argv=None):
             print("noise", json.dumps({k: round(v, 3) for k, v in results["full"].items() if k.startswith("noise")}),
                   flush=True)
         if not args.only_full:
-            fixed = FixedPose(Synthesizer(SynthesisOptions(foot_lock=False), nets=nets), mean_follower_offset(args.data))
+            fixed = FixedPose(Synthesizer(SynthesisOptions(foot_lock=False), nets=nets),
+                              mean_follower_offset(args.data))
             runs, info = run_system(None, segments, tmp, fixed=fixed, scenario=scenario)
             results["(d) fixed pose under the head"] = {**score(runs), **stability(runs), **info}
             print("(d)", json.dumps({k: round(v, 3) if isinstance(v, float) else v

@@ -23,8 +23,8 @@ Before any work the command line is checked (inputs, the networks loaded once
 with :func:`~..nets.check_models`, the report path, the output folder's lock):
 a problem there is one line and exit status 2. Then a bad file is reported and
 skipped, the rest go on; the exit status is 1 if any file failed. ``--jobs`` is
-capped at the number of files, with a warning line when above the cores. The package never imports ``bpy``: the Blender side hands its
-converter to the worker loop (:func:`.worker.worker_main`).
+capped at the number of files, with a warning line when above the cores. The
+package never imports ``bpy``: the Blender side hands its converter to the worker loop (:func:`.worker.worker_main`).
 """
 from __future__ import annotations
 

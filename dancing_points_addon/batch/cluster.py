@@ -189,7 +189,8 @@ class ClusterBatch:
             if name == "KilledWorker":
                 n = getattr(exc, "allowed_failures", self.cluster.allowed_failures)
                 last = getattr(getattr(exc, "last_worker", None), "address", "?")
-                return self._finish(task, "failed", f"worker died while converting it, {n + 1 if n is not None else 'too many'} "
+                times = n + 1 if n is not None else "too many"
+                return self._finish(task, "failed", f"worker died while converting it, {times} "
                                                     f"times (the scheduler's allowed-failures; last on {last})")
             return self._finish(task, "failed", f"cluster: {name}: {one_line(exc)}")
         return self._finish(task, "failed", f"cluster: the task was {status} (was the scheduler restarted?)")

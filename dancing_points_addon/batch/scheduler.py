@@ -28,7 +28,7 @@ import time
 
 from ..errors import InputError, one_line
 from . import messages
-from .options import BPY_FORMATS, task_needs_bpy
+from .options import task_needs_bpy
 from .plan import remove_temps, settle_unfinished
 from .progress import result_line
 from ..argtypes import SINGLE_THREAD_ENV

@@ -67,7 +67,8 @@ def _case(kind):
     h = ",".join(COLUMNS)
     L = good_lines(6)
     if kind == "missing column":
-        return h.replace(",rhand_qz", ""), [ln.rsplit(",", 1)[0] for ln in L], HEADER_LINE, "missing header column rhand_qz"
+        return (h.replace(",rhand_qz", ""), [ln.rsplit(",", 1)[0] for ln in L], HEADER_LINE,
+                "missing header column rhand_qz")
     if kind == "unknown column":
         return h + ",extra", [ln + ",0" for ln in L], HEADER_LINE, "unknown header column 'extra'"
     if kind == "duplicate column":
