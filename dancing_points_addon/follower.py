@@ -325,12 +325,6 @@ class HipTwist:
         return positions, rotations
 
 
-def _norm(v):
-    """The length of a 3-list, as ``np.sqrt(v @ v)`` rounds it."""
-    a = np.array(v)
-    return float(np.sqrt(a @ a))
-
-
 class HandHold:
     """Hand holds of the duet: when one of the four leader/follower wrist
     pairs is predicted close, the follower's wrist of that pair is pulled by
@@ -413,11 +407,11 @@ class HandHold:
             fw = follower_pos[WRISTS[j]].tolist()
             sh = follower_pos[self.SHOULDERS[j]].tolist()
             v = [a - b for a, b in zip(sh, lw)]
-            n = _norm(v)
+            n = hypot(*v)
             goal = [a + b / n * o.hold_gap for a, b in zip(lw, v)] if n > 1e-6 else lw
             # within reach of her shoulder: full weight up to hold_reach - 0.1 of the arm, none past hold_reach
             g = [a - b for a, b in zip(goal, sh)]
-            reach = _norm(g) / max(float(arm_length[j]), 1e-6)
+            reach = hypot(*g) / max(float(arm_length[j]), 1e-6)
             w = self.weight[j] * min(max((o.hold_reach - reach) / 0.1, 0.0), 1.0)
             if o.hold_near > 0:
                 # his hand at her shoulder (his hand on her back, not a hand hold):

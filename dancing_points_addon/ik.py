@@ -84,7 +84,8 @@ def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
         # half turn about an axis perpendicular to u
         e = np.where(np.abs(u[..., :1]) < 0.9, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
         a = np.cross(u, e)
-        a /= np.linalg.norm(a, axis=-1, keepdims=True)
+        with np.errstate(invalid="ignore"):  # (a zero u's row, not opposite, is not used)
+            a /= np.linalg.norm(a, axis=-1, keepdims=True)
         half = 2.0 * a[..., :, None] * a[..., None, :] - np.eye(3)
         R = np.where(opposite[..., None, None], half, R)
     return np.where(ok[..., None, None], R, np.eye(3))

@@ -27,7 +27,7 @@ from .nets import contact_floor_levels, load_nets
 from .pose import LEG_TWIST_DEG, FloorGuard, LegJoints, PoseRecovery, bone_vectors_from_pose
 from .representation import (DEVICE_FROM_HEAD, blend_root, hip_frame, pose_to_world, root_compose, root_from_head,
                              root_relative, rot_to_local, to_local, to_world)
-from .rotations import quat_to_matrix_one, rotation_angle
+from .rotations import quat_to_matrix, rotation_angle
 from .skeleton import FEET, HEAD_BONE, JOINT_INDEX, JOINT_NAMES, LOWER_BODY, TRACKED
 
 CALIBRATION_FRAMES = 30  # live, without a calibration: the height is estimated over the first second
@@ -474,7 +474,7 @@ class Synthesizer:
         inv = 1.0 / self.scale()
         if valid[0]:
             head_pos = np.asarray(positions[0], dtype=np.float64)
-            head_rot = quat_to_matrix_one(quats[0])
+            head_rot = quat_to_matrix(quats[0])
             root = root_from_head(head_pos, head_rot)
         elif pred is not None and self.last_valid is not None:
             root = pred[0] * np.array([inv, inv, 1.0, 1.0])
@@ -587,7 +587,7 @@ class Synthesizer:
         tracked, head_rot, root = self._clean(positions, quats, valid)
         if self._follow is not None:  # what the devices measure this frame, for the head and hands to follow
             self._devices_now = (head_rot if valid[0] else None,
-                                 *(quat_to_matrix_one(quats[i]) if valid[i] else None for i in (1, 2)))
+                                 *(quat_to_matrix(quats[i]) if valid[i] else None for i in (1, 2)))
         if valid[0] and self.calibration is None and self.height is None:
             self._head_heights.append(tracked[0, 1])
         s = self.scale()

@@ -14,7 +14,9 @@ I3 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
 def rot_between_s(ux, uy, uz, vx, vy, vz):
-    """Row-major 9-tuple of the minimal rotation taking u to v (scalar)."""
+    """Row-major 9-tuple of the minimal rotation taking u to v: the formula of
+    :func:`.ik.rotation_between` (its batch form) on Python floats, for the
+    frame loop (tests/test_kernels.py holds them equal)."""
     nu = sqrt(ux * ux + uy * uy + uz * uz)
     nv = sqrt(vx * vx + vy * vy + vz * vz)
     if nu < 1e-12 or nv < 1e-12:

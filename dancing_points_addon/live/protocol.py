@@ -253,7 +253,7 @@ class VmcDecoder:
         self.head = None  # the last head pose: (position, rotation matrix)
 
     def decode(self, messages) -> Packet:
-        from ..rotations import quat_to_matrix_one
+        from ..rotations import quat_to_matrix
 
         pk = Packet()
         hands = []  # (kind, serial, p, q) of this packet's controllers and trackers
@@ -272,7 +272,7 @@ class VmcDecoder:
                             self.head_serial = serial
                         if serial == self.head_serial:
                             pk.poses[0] = (p, q)
-                            self.head = (p, quat_to_matrix_one(q))
+                            self.head = (p, quat_to_matrix(q))
                     else:
                         hands.append((address, serial, p, q))
                 elif address == VMC_TIME:
