@@ -129,7 +129,8 @@ def cmd_synthesize(args) -> int:
     import time
 
     from .nets import check_models
-    from .runtime import SynthesisOptions, Synthesizer, duet_motions, save_npz
+    from .duet import duet_motions, save_npz
+    from .runtime import SynthesisOptions, Synthesizer
 
     out = args.output
     check_output_path(out)

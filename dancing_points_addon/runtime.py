@@ -9,6 +9,13 @@ Timing (see ``features``): the tracker state at step ``t`` holds each dancer's
 pose at ``t − 1``; its future keys ``t − 1 + k`` are the current input (key 1)
 and the mapping network's prediction from the input up to ``t`` (keys ≥ 2). The
 follower's key 1 comes from the previous step's mapping.
+
+Why this module is over 500 lines: it is :class:`Synthesizer`, one per-frame
+state machine whose steps (cleaning the input, the mapping, her placement, the
+two trackers, pose recovery) read and write the same state. What stands alone
+lives beside it: the duet (:mod:`.duet`), a tracker's state
+(:mod:`.dancer_state`), her placement and holds (:mod:`.follower`), the foot
+lock (:mod:`.foot_lock`), pose recovery (:mod:`.pose`).
 """
 from __future__ import annotations
 
@@ -20,15 +27,17 @@ import numpy as np
 
 from . import features as F
 from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate, check_role, height_from_head
+from .dancer_state import DancerState, advance_together
 from .device_follow import DeviceFollow, limit_rotation
+from .duet import Duet, DuetFrame
 from .follower import FollowerOptions, HandHold, HipTwist, Placement, Separation, hip_heading_from_probs
 from .formats.devices import openxr_to_points
 from .nets import contact_floor_levels, load_nets
 from .pose import LEG_TWIST_DEG, FloorGuard, LegJoints, PoseRecovery, bone_vectors_from_pose
-from .representation import (DEVICE_FROM_HEAD, blend_root, hip_frame, pose_to_world, root_compose, root_from_head,
-                             root_relative, rot_to_local, to_local, to_world)
+from .representation import (hip_frame, root_from_head,
+                             root_relative, to_local, to_world)
 from .rotations import quat_to_matrix, rotation_angle
-from .skeleton import FEET, HEAD_BONE, JOINT_INDEX, JOINT_NAMES, LOWER_BODY, TRACKED
+from .skeleton import FEET, JOINT_INDEX, LOWER_BODY, TRACKED
 
 CALIBRATION_FRAMES = 30  # live, without a calibration: the height is estimated over the first second
 KIN_HEIGHT, KIN_SPEED, KIN_FLOOR_RISE = 0.035, 1.5, 0.001  # kinematic contacts: m, m/s, m per frame
@@ -49,146 +58,6 @@ def _meta_json(net, key):
         return json.loads(v)
     except (TypeError, ValueError):
         return None
-
-
-@dataclass
-class DuetFrame:
-    positions: np.ndarray  # (31, 3) world
-    rotations: np.ndarray  # (31, 3, 3) world
-    contacts: np.ndarray  # (4,)
-
-
-@dataclass
-class Duet:
-    """A synthesised duet (SPEC §4)."""
-
-    time: np.ndarray
-    leader_positions: np.ndarray
-    leader_rotations: np.ndarray
-    leader_contacts: np.ndarray
-    follower_positions: np.ndarray
-    follower_rotations: np.ndarray
-    follower_contacts: np.ndarray
-    fps: float = F.FPS
-    bone_vectors: dict | None = None  # each dancer's skeleton (rest bone vectors, output scale)
-    # The mapping network's 1 s predictions made at each frame (``Synthesizer(record_predictions=True)``):
-    # (T, 2 dancers, FUTURE frames t+1…, 3 tracked points, 3) world positions at the output scale,
-    # float32; None when not recorded. Not part of the SPEC §4 output (:meth:`arrays`).
-    predictions: np.ndarray | None = None
-    # Each dancer's foot points held by the foot lock at each frame (T, 2 dancers, 4 points in
-    # ``contacts`` order), bool; None without foot locking. What the method view's discs show.
-    # Not part of the SPEC §4 output (:meth:`arrays`).
-    planted: np.ndarray | None = None
-    # How the take was read (devices, the tracked dancer's height, the floor): written
-    # beside the SPEC §4 arrays (:meth:`arrays`) so that a user sees what was estimated.
-    calibration: Calibration | None = None
-    tracked_role: str = "leader"  # whose three points the take held (SPEC §4)
-
-    @property
-    def n_frames(self):
-        return len(self.time)
-
-    def arrays(self) -> dict:
-        """The SPEC §4 arrays, and the calibration (``height_m``, ``height_source``,
-        ``floor_y``, ``floor_source``, ``devices``) when known."""
-        out = {"fps": np.float64(self.fps), "time": self.time, "joint_names": np.array(JOINT_NAMES),
-               "leader_positions": self.leader_positions, "leader_rotations": self.leader_rotations,
-               "leader_contacts": self.leader_contacts, "follower_positions": self.follower_positions,
-               "follower_rotations": self.follower_rotations, "follower_contacts": self.follower_contacts,
-               "tracked_role": np.array(self.tracked_role)}
-        c = self.calibration
-        if c is not None:
-            out.update(height_m=np.float64(c.height), height_source=np.array(c.height_source),
-                       floor_y=np.float64(c.floor_y), floor_source=np.array(c.floor_source),
-                       devices=np.array(c.devices))
-        return out
-
-
-class _Dancer:
-    """Autoregressive state of one dancer's tracker."""
-
-    def __init__(self, net, default_pose: np.ndarray):
-        self.net = net
-        self.default_pose = default_pose
-        self.root = None  # F0 (4,)
-        self.pose = None  # (POSE_DIM,)
-
-    def place(self, root):
-        self.root = np.asarray(root, dtype=np.float64).copy()
-        self.pose = self.default_pose.copy()
-
-    def advance(self, key_roots, key_tracked, observed_root=None, pull=None):
-        """One tracker step; returns world positions, rotations, contacts of the new
-        frame. ``observed_root``: the new frame's root when the input shows it (the
-        leader's head), used instead of the predicted one so the root cannot drift.
-        ``pull = (root, w)``: move the predicted root the share ``w`` of the way to
-        ``root`` (a complementary filter: no drift, little jitter)."""
-        pos, rot, con = advance_together((self,), key_roots[None], key_tracked[None], (observed_root,), (pull,))
-        return pos[0], rot[0], con[0]
-
-    def set_pose(self, pos_world, rot_world, contacts):
-        """Replace the state's pose (world) by a post-processed one."""
-        self.pose = F.pose_features(to_local(pos_world[None], self.root[None]),
-                                    rot_to_local(rot_world[None], self.root[None]), contacts[None])[0]
-
-
-def limit_drift(pos, limit):
-    """Local poses ``(D, 31, 3)`` translated horizontally so that the head point
-    is at most ``limit`` metres from the root's origin (a tracker state that
-    has wandered off its root is brought back; a nearer one is untouched)."""
-    out = pos.copy()
-    for i in range(len(pos)):
-        x, z = float(pos[i, TRACKED[0], 0]), float(pos[i, TRACKED[0], 2])
-        d = sqrt(x * x + z * z)
-        if d > limit:
-            f = (d - limit) / d
-            out[i, :, 0] -= x * f
-            out[i, :, 2] -= z * f
-    return out
-
-
-def recentre(pos, rot):
-    """Each local pose ``(D, 31, 3)``, ``(D, 31, 3, 3)`` moved into the frame its
-    own head defines (SPEC root: the head's floor point, the head device's
-    heading): the frame every training pose is given in. The tracker's pose
-    state cannot then wander away from its root, however long the take."""
-    out_p, out_r = np.empty_like(pos), np.empty_like(rot)
-    for i in range(len(pos)):
-        frame = root_from_head(pos[i, TRACKED[0]], rot[i, HEAD_BONE] @ DEVICE_FROM_HEAD)
-        out_p[i] = to_local(pos[i], frame)
-        out_r[i] = rot_to_local(rot[i], frame)
-    return out_p, out_r
-
-
-def advance_together(dancers, key_roots, key_tracked, observed_roots, pulls, recentre_pose=(False, False)):
-    """:meth:`_Dancer.advance` of several dancers at once: their networks one
-    after the other, the feature work around them batched over the dancers (at
-    these sizes numpy's cost is per call, not per element). ``key_roots (D, K, 4)``,
-    ``key_tracked (D, K, 3, 3)``; per dancer an observed root (or None) and a pull
-    (or None). Returns world positions ``(D, 31, 3)``, rotations ``(D, 31, 3, 3)``
-    and contacts ``(D, 4)``."""
-    x = F.tracking_input(np.array([d.pose for d in dancers]), np.array([d.root for d in dancers]),
-                         key_roots, key_tracked)
-    y = np.concatenate([d.net(x[i:i + 1]) for i, d in enumerate(dancers)], dtype=np.float64)
-    rel, pos, rot, con = F.split_tracking_output(y[:, :F.KEY_OUT])
-    for d, r, root, pull in zip(dancers, rel[:, 0], observed_roots, pulls):
-        if root is None:
-            root = root_compose(d.root, r)
-        elif callable(root):  # a placement given the tracker's own next root
-            root = np.array(root(d.root.tolist(), root_compose(d.root, r).tolist()))
-        if pull is not None and pull[1] > 0:
-            root = np.array(blend_root(root.tolist(), pull[0].tolist(), pull[1]))
-        d.root = root
-    pos, rot = pos[:, 0], rot[:, 0]
-    for i, on in enumerate(recentre_pose):
-        if on is True:
-            pos[i:i + 1], rot[i:i + 1] = recentre(pos[i:i + 1], rot[i:i + 1])
-        elif on is not False and on is not None:  # a distance: limit the drift to it
-            pos[i:i + 1] = limit_drift(pos[i:i + 1], float(on))
-    con = np.minimum(np.maximum(con[:, 0], 0.0), 1.0)  # np.clip(con, 0, 1), cheaper
-    for d, pose in zip(dancers, F.pose_features(pos, rot, con)):
-        d.pose = pose
-    return pose_to_world(pos, rot, np.array([d.root for d in dancers])) + (con,)
 
 
 @dataclass(frozen=True)
@@ -366,8 +235,8 @@ class Synthesizer:
         self.t = 0
         self.hist_roots = np.zeros((F.PAST, 4))
         self.hist_tracked = np.zeros((F.PAST, 3, 3))
-        self.leader = _Dancer(self.nets["leader"], self.default_pose["leader"])
-        self.follower = _Dancer(self.nets["follower"], self.default_pose["follower"])
+        self.leader = DancerState(self.nets["leader"], self.default_pose["leader"])
+        self.follower = DancerState(self.nets["follower"], self.default_pose["follower"])
         self.prev_follower = None  # (root, tracked_local) predicted for frame t
         self.last_valid = None  # last valid (head position, head rotation), input space
         self.last_hand = [None, None]  # last valid (hand position, head root) per hand
@@ -811,23 +680,3 @@ class Synthesizer:
             slots = slots[::-1]
         return Duet(tk.time, *slots[0], *slots[1], bone_vectors=self.output_bone_vectors(), predictions=preds,
                     planted=planted, calibration=calib, tracked_role=self.role)
-
-
-def save_npz(duet: Duet, path) -> None:
-    """Write a duet (SPEC §4) atomically: nothing is left at ``path`` on failure
-    (a full disk, Ctrl-C: the temporary file is removed, the zip writer closed
-    without a word)."""
-    from .formats.files import atomic_output, write_npz
-
-    with atomic_output(path, "wb") as f:
-        write_npz(f, duet.arrays())
-
-
-def duet_motions(duet: Duet, bone_vectors: dict | None = None):
-    """The two dancers as SPEC :class:`~.skeleton.Motion` clips (for BVH export)."""
-    from .skeleton import Motion
-
-    bone_vectors = bone_vectors or duet.bone_vectors
-    return {role: Motion(getattr(duet, f"{role}_positions"), getattr(duet, f"{role}_rotations"), duet.fps,
-                         bone_vectors[role], source=role)
-            for role in ("leader", "follower")}

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""Bake a synthesised duet (``runtime.Duet``, SPEC §4) into the scene.
+"""Bake a synthesised duet (``duet.Duet``, SPEC §4) into the scene.
 
 Per dancer: an armature ("DP Leader" / "DP Follower") with the 31 SPEC §2 bones
 (bone ``n`` from its parent's joint to its own joint, so its tail is the SPEC

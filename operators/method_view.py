@@ -373,7 +373,7 @@ def stage_floor(scene):
 
 
 def build_method_view(context, duet_coll, duet, take_coll=None, frame_start=1, frame_step=None):
-    """Add the method objects of ``duet`` (a :class:`~.runtime.Duet` with
+    """Add the method objects of ``duet`` (a :class:`~.duet.Duet` with
     predictions) to ``duet_coll``; ``take_coll``: the take whose empties carry the
     input markers; sample ``k`` shows on scene frame ``frame_start + k ·
     frame_step`` (default: the take's step, else 1). Returns the new collection

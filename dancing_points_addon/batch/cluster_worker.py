@@ -178,7 +178,8 @@ def core_convert(job, progress):
     from ..formats.bvh import bvh_text
     from ..formats.files import write_npz
     from ..formats.inputs import load_input
-    from ..runtime import Synthesizer, duet_motions
+    from ..duet import duet_motions
+    from ..runtime import Synthesizer
     from .options import synthesis_options
 
     o = job["options"]

@@ -69,14 +69,14 @@ def write_duet_files(temps: dict, duet) -> None:
     worker removes them when a write fails)."""
     from ..formats.files import write_npz
 
-    if "npz" in temps:  # (not runtime.save_npz: its own temporary file would escape a killed worker's cleanup)
+    if "npz" in temps:  # (not duet.save_npz: its own temporary file would escape a killed worker's cleanup)
         with open(temps["npz"], "wb") as f:
             write_npz(f, duet.arrays())  # (a failed write leaves no zip writer behind to complain)
             f.flush()
             os.fsync(f.fileno())
     if "bvh_leader" in temps or "bvh_follower" in temps:
         from ..formats.bvh import bvh_text
-        from ..runtime import duet_motions
+        from ..duet import duet_motions
 
         for role, motion in duet_motions(duet).items():
             path = temps.get("bvh_" + role)

@@ -431,7 +431,7 @@ class LiveSession:
         return (float(np.median(lat)), float(np.percentile(lat, 99))) if lat.size else (math.nan, math.nan)
 
     def _duet(self, T):
-        from ..runtime import Duet
+        from ..duet import Duet
 
         f = self._frames
         if T < 1 or len(f["lp"]) < T:

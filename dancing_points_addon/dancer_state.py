@@ -1,0 +1,101 @@
+"""One dancer's tracker state (:class:`DancerState`) and the step that
+advances the tracked dancer and the partner together
+(:func:`advance_together`), with what keeps a pose state on its root on any
+length of take (:func:`limit_drift`, :func:`recentre`)."""
+from __future__ import annotations
+
+from math import sqrt
+
+import numpy as np
+
+from . import features as F
+from .representation import (DEVICE_FROM_HEAD, blend_root, pose_to_world, root_compose, root_from_head, rot_to_local,
+                             to_local)
+from .skeleton import HEAD_BONE, TRACKED
+
+
+class DancerState:
+    """Autoregressive state of one dancer's tracker."""
+
+    def __init__(self, net, default_pose: np.ndarray):
+        self.net = net
+        self.default_pose = default_pose
+        self.root = None  # F0 (4,)
+        self.pose = None  # (POSE_DIM,)
+
+    def place(self, root):
+        self.root = np.asarray(root, dtype=np.float64).copy()
+        self.pose = self.default_pose.copy()
+
+    def advance(self, key_roots, key_tracked, observed_root=None, pull=None):
+        """One tracker step; returns world positions, rotations, contacts of the new
+        frame. ``observed_root``: the new frame's root when the input shows it (the
+        leader's head), used instead of the predicted one so the root cannot drift.
+        ``pull = (root, w)``: move the predicted root the share ``w`` of the way to
+        ``root`` (a complementary filter: no drift, little jitter)."""
+        pos, rot, con = advance_together((self,), key_roots[None], key_tracked[None], (observed_root,), (pull,))
+        return pos[0], rot[0], con[0]
+
+    def set_pose(self, pos_world, rot_world, contacts):
+        """Replace the state's pose (world) by a post-processed one."""
+        self.pose = F.pose_features(to_local(pos_world[None], self.root[None]),
+                                    rot_to_local(rot_world[None], self.root[None]), contacts[None])[0]
+
+
+def limit_drift(pos, limit):
+    """Local poses ``(D, 31, 3)`` translated horizontally so that the head point
+    is at most ``limit`` metres from the root's origin (a tracker state that
+    has wandered off its root is brought back; a nearer one is untouched)."""
+    out = pos.copy()
+    for i in range(len(pos)):
+        x, z = float(pos[i, TRACKED[0], 0]), float(pos[i, TRACKED[0], 2])
+        d = sqrt(x * x + z * z)
+        if d > limit:
+            f = (d - limit) / d
+            out[i, :, 0] -= x * f
+            out[i, :, 2] -= z * f
+    return out
+
+
+def recentre(pos, rot):
+    """Each local pose ``(D, 31, 3)``, ``(D, 31, 3, 3)`` moved into the frame its
+    own head defines (SPEC root: the head's floor point, the head device's
+    heading): the frame every training pose is given in. The tracker's pose
+    state cannot then wander away from its root, however long the take."""
+    out_p, out_r = np.empty_like(pos), np.empty_like(rot)
+    for i in range(len(pos)):
+        frame = root_from_head(pos[i, TRACKED[0]], rot[i, HEAD_BONE] @ DEVICE_FROM_HEAD)
+        out_p[i] = to_local(pos[i], frame)
+        out_r[i] = rot_to_local(rot[i], frame)
+    return out_p, out_r
+
+
+def advance_together(dancers, key_roots, key_tracked, observed_roots, pulls, recentre_pose=(False, False)):
+    """:meth:`DancerState.advance` of several dancers at once: their networks one
+    after the other, the feature work around them batched over the dancers (at
+    these sizes numpy's cost is per call, not per element). ``key_roots (D, K, 4)``,
+    ``key_tracked (D, K, 3, 3)``; per dancer an observed root (or None) and a pull
+    (or None). Returns world positions ``(D, 31, 3)``, rotations ``(D, 31, 3, 3)``
+    and contacts ``(D, 4)``."""
+    x = F.tracking_input(np.array([d.pose for d in dancers]), np.array([d.root for d in dancers]),
+                         key_roots, key_tracked)
+    y = np.concatenate([d.net(x[i:i + 1]) for i, d in enumerate(dancers)], dtype=np.float64)
+    rel, pos, rot, con = F.split_tracking_output(y[:, :F.KEY_OUT])
+    for d, r, root, pull in zip(dancers, rel[:, 0], observed_roots, pulls):
+        if root is None:
+            root = root_compose(d.root, r)
+        elif callable(root):  # a placement given the tracker's own next root
+            root = np.array(root(d.root.tolist(), root_compose(d.root, r).tolist()))
+        if pull is not None and pull[1] > 0:
+            root = np.array(blend_root(root.tolist(), pull[0].tolist(), pull[1]))
+        d.root = root
+    pos, rot = pos[:, 0], rot[:, 0]
+    for i, on in enumerate(recentre_pose):
+        if on is True:
+            pos[i:i + 1], rot[i:i + 1] = recentre(pos[i:i + 1], rot[i:i + 1])
+        elif on is not False and on is not None:  # a distance: limit the drift to it
+            pos[i:i + 1] = limit_drift(pos[i:i + 1], float(on))
+    con = np.minimum(np.maximum(con[:, 0], 0.0), 1.0)  # np.clip(con, 0, 1), cheaper
+    for d, pose in zip(dancers, F.pose_features(pos, rot, con)):
+        d.pose = pose
+    return pose_to_world(pos, rot, np.array([d.root for d in dancers])) + (con,)

@@ -1,0 +1,85 @@
+"""A synthesised duet (SPEC §4): :class:`Duet`, one frame of it
+(:class:`DuetFrame`), and writing it (:func:`save_npz`, :func:`duet_motions`
+for BVH)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import features as F
+from .calibration import Calibration
+from .skeleton import JOINT_NAMES
+
+
+@dataclass
+class DuetFrame:
+    positions: np.ndarray  # (31, 3) world
+    rotations: np.ndarray  # (31, 3, 3) world
+    contacts: np.ndarray  # (4,)
+
+
+@dataclass
+class Duet:
+    """A synthesised duet (SPEC §4)."""
+
+    time: np.ndarray
+    leader_positions: np.ndarray
+    leader_rotations: np.ndarray
+    leader_contacts: np.ndarray
+    follower_positions: np.ndarray
+    follower_rotations: np.ndarray
+    follower_contacts: np.ndarray
+    fps: float = F.FPS
+    bone_vectors: dict | None = None  # each dancer's skeleton (rest bone vectors, output scale)
+    # The mapping network's 1 s predictions made at each frame (``Synthesizer(record_predictions=True)``):
+    # (T, 2 dancers, FUTURE frames t+1…, 3 tracked points, 3) world positions at the output scale,
+    # float32; None when not recorded. Not part of the SPEC §4 output (:meth:`arrays`).
+    predictions: np.ndarray | None = None
+    # Each dancer's foot points held by the foot lock at each frame (T, 2 dancers, 4 points in
+    # ``contacts`` order), bool; None without foot locking. What the method view's discs show.
+    # Not part of the SPEC §4 output (:meth:`arrays`).
+    planted: np.ndarray | None = None
+    # How the take was read (devices, the tracked dancer's height, the floor): written
+    # beside the SPEC §4 arrays (:meth:`arrays`) so that a user sees what was estimated.
+    calibration: Calibration | None = None
+    tracked_role: str = "leader"  # whose three points the take held (SPEC §4)
+
+    @property
+    def n_frames(self):
+        return len(self.time)
+
+    def arrays(self) -> dict:
+        """The SPEC §4 arrays, and the calibration (``height_m``, ``height_source``,
+        ``floor_y``, ``floor_source``, ``devices``) when known."""
+        out = {"fps": np.float64(self.fps), "time": self.time, "joint_names": np.array(JOINT_NAMES),
+               "leader_positions": self.leader_positions, "leader_rotations": self.leader_rotations,
+               "leader_contacts": self.leader_contacts, "follower_positions": self.follower_positions,
+               "follower_rotations": self.follower_rotations, "follower_contacts": self.follower_contacts,
+               "tracked_role": np.array(self.tracked_role)}
+        c = self.calibration
+        if c is not None:
+            out.update(height_m=np.float64(c.height), height_source=np.array(c.height_source),
+                       floor_y=np.float64(c.floor_y), floor_source=np.array(c.floor_source),
+                       devices=np.array(c.devices))
+        return out
+
+
+def save_npz(duet: Duet, path) -> None:
+    """Write a duet (SPEC §4) atomically: nothing is left at ``path`` on failure
+    (a full disk, Ctrl-C: the temporary file is removed, the zip writer closed
+    without a word)."""
+    from .formats.files import atomic_output, write_npz
+
+    with atomic_output(path, "wb") as f:
+        write_npz(f, duet.arrays())
+
+
+def duet_motions(duet: Duet, bone_vectors: dict | None = None):
+    """The two dancers as SPEC :class:`~.skeleton.Motion` clips (for BVH export)."""
+    from .skeleton import Motion
+
+    bone_vectors = bone_vectors or duet.bone_vectors
+    return {role: Motion(getattr(duet, f"{role}_positions"), getattr(duet, f"{role}_rotations"), duet.fps,
+                         bone_vectors[role], source=role)
+            for role in ("leader", "follower")}
