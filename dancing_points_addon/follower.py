@@ -55,9 +55,12 @@ def _compose(ref, rel):
 
 @dataclass(frozen=True)
 class FollowerOptions:
-    """The follower's placement, separation and hold settings (chosen on the
-    val frames, see models/README.md)."""
+    """The synthesised partner's settings: placement, separation, pose, hips,
+    hand holds and foot lock. Chosen on the val frames; the figures behind each
+    are in models/README.md ("What the runtime does with them") and
+    docs/experiments.md (what else was tried)."""
 
+    # -- placement (``Placement``)
     horizon: int = 10  # predicted frames averaged into the placement target
     pull: float = 0.05  # share of the gap to the target closed per frame
     pull_heading: float = 0.05  # the same for her heading
@@ -69,34 +72,16 @@ class FollowerOptions:
     max_offset: float = 2.0  # m, the farthest target from the leader's root
     max_gap: float = 0.8  # m, the farthest she may lag behind her target (a leash)
     min_distance: float = 0.2  # m, torso axes (0: no separation)
-    # Her lower body (hip joints and legs) is pulled this share of the way a frame to the pose
-    # anchor's (``nets["anchor"]``: her lower body from the leader's past 0.5 s, in her hip frame),
-    # before her foot lock; her tracker's state is fed back from there, each leg bone's twist kept
-    # within the skeleton's (``pose.LegJoints``), and her output's hip joints turn with her pelvis.
-    # 0.3 (chosen on val) halves her change under 1 mm of tracker noise and plants her feet more
-    # (models/README.md, "Pose anchor"; 0: off)
-    anchor: float = 0.3
-    # degrees a frame: her upper arms and forearms turn at most this much relative to her chest
-    # (``ik.ArmTurnLimit``; the fastest real arm in the salsa train frames: 30). A hand hold whose
-    # target passes her shoulder otherwise flips her arm (130° in a frame, with the anchor; 0: free)
-    arm_turn: float = 30.0
-    # Her hips turn this share of the way from their heading to the hip-heading network's
-    # (``nets["hip"]``, ``hip_heading.onnx``: her hip heading relative to his root from his past
-    # 0.5 s, over ``HIP_BINS`` bins; its circular mean), her upper body as it was (``HipTwist``):
-    # her shoulders keep facing where her placement turns her (half towards the leader), so her
-    # holds keep their reach. At most ``hip_twist_max`` degrees, eased by ``hip_twist_rate`` a
-    # frame; in her output only (0: off)
+    # -- pose
+    anchor: float = 0.3  # share a frame her lower body moves to the pose anchor network's (``pose.LegJoints``; 0: off)
+    arm_turn: float = 30.0  # degrees a frame her arms may turn against her chest (``ik.ArmTurnLimit``; 0: free)
+    # -- hips (``HipTwist``): turned this share towards the hip-heading network's heading (0: off)
     hip_twist: float = 0.5
-    hip_twist_max: float = 45.0
-    hip_twist_rate: float = 0.2
-    # degrees: in her output (after her foot lock), each thigh's twist about itself against her pelvis
-    # within this, and the bones below it within her state's limits (``pose.LegJoints.twist``,
-    # ``pose.LEG_TWIST_DEG``; only the bones' roll changes, no joint moves; 0: none in her output).
-    # Her state's thighs sit near its 45 degrees (median 30-38
-    # on the sample take) where the real follower's twist is 9-10 at the median and 32-33 at the
-    # 99th percentile (salsa take 01): the skin at her hips stretched (99.9 % of edges within 1.85 ×
-    # rest with the norm-loss mapping; 1.78 at 30 degrees)
-    out_thigh_twist: float = 30.0
+    hip_twist_max: float = 45.0  # degrees, at most
+    hip_twist_rate: float = 0.2  # share of the remaining turn eased a frame
+    # -- her output's legs
+    out_thigh_twist: float = 30.0  # degrees: her output thighs' twist against her pelvis at most (0: unlimited)
+    # -- hand holds (``HandHold``)
     hold: bool = True  # hand holds by arm IK
     hold_on: float = 0.7  # m, predicted wrist distance under which a hold is full
     hold_off: float = 1.0  # m, over which there is none
@@ -104,41 +89,25 @@ class FollowerOptions:
     hold_frames: int = 6  # the hold's weight changes by at most 1 / hold_frames a frame
     hold_soft: float = 0.03  # m: his two hands weighted by a softmax of distance / hold_soft (> 0)
     hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (> 0)
-    # the spring's feed-forward: this share of the pull's own velocity (smoothed across frames by
-    # ``hold_lead_smooth``) drives it, so it lags less behind a moving hold (0: none; 1: no lag at a
-    # steady speed). Chosen on val with 9-frame steps: hand 12.65 -> 11.80 cm, jitter 177 -> 191
-    hold_lead: float = 0.5
-    hold_lead_smooth: float = 0.7
+    hold_lead: float = 0.5  # share of the pull's own (smoothed) velocity fed forward to the spring (0: none)
+    hold_lead_smooth: float = 0.7  # smoothing of that velocity across frames
     hold_soft_rate: float = 0.04  # the soft partner's weights change by at most this much a frame (0: free)
-    hold_reach: float = 1.4  # × her arm: a hold whose goal is farther from her shoulder has faded out (over
-    # the last 0.1; past her arm's length the IK turns her clavicle to bring the shoulder forward). Chosen
-    # on val with the device-offset mapping family: hand 11.87 / 11.43 / 11.04 / 10.71 / 10.51 / 10.51 cm
-    # at 1.2 / 1.3 / 1.4 / 1.5 / 1.6 / 2.0; past 1.4 the reach stretches her shoulder's skin towards a tear
-    # (the sample take's largest edge ratio 2.72 at 1.4, 2.93 at 1.5, 3.59 at 1.6; tests/test_skinning.py)
-    hold_near: float = 0.35  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1;
-    # his hand at her shoulder is his hand on her back, not a hold; 0: never)
-    # her foot lock (``foot_lock.FootLocker``; chosen on val, see models/README.md, "Steps"):
-    # her foot points plant and lift as the contact network says (its probabilities smoothed
-    # ``contact_smooth`` across frames, hysteresis ``lock_on`` / ``lock_off``), on her floor
-    # (its floor levels, from the train split).
-    # A planted foot holds until her predicted foot is ``lock_drift`` m from it; a release is a
-    # catch-up step of ``step_frames`` frames, at least ``step_height`` m high (at most
-    # ``step_max``); a lock blends in over ``lock_blend`` frames; a foot that plants stays where
-    # it was on the last frame (``land_still``) and is put at most ``lock_floor`` m above her
-    # floor (< 0: where it is); a free foot moving fast is lifted ``clearance`` m off her floor (0: not)
-    contact_smooth: float = 0.5
-    lock_on: float = 0.4
-    lock_off: float = 0.3
-    lock_drift: float = 0.3
-    step_height: float = 0.04
-    step_max: float = 0.06
-    step_frames: int = 9
-    lift_ball: bool = True
-    lock_blend: int = 10
-    lock_floor: float = 0.01
-    land_still: bool = True
-    clearance: float = 0.05
-    clear_rate: float = 0.125
+    hold_reach: float = 1.4  # × her arm: a hold whose goal is farther from her shoulder fades out (over 0.1)
+    hold_near: float = 0.35  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1; 0: never)
+    # -- foot lock (``foot_lock.FootLocker``), her steps timed by the contact network
+    contact_smooth: float = 0.5  # smoothing of the contact probabilities across frames
+    lock_on: float = 0.4  # hysteresis: a point plants above this probability
+    lock_off: float = 0.3  # and lifts below this one
+    lock_drift: float = 0.3  # m: a planted foot lets go when her predicted foot is this far from it
+    step_height: float = 0.04  # m: a release is a catch-up step at least this high
+    step_max: float = 0.06  # m: and at most this high
+    step_frames: int = 9  # frames of a catch-up step
+    lift_ball: bool = True  # the whole foot leaves the floor in a step, its ball too
+    lock_blend: int = 10  # frames a lock blends in over
+    lock_floor: float = 0.01  # m: a planting foot is put at most this far above her floor (< 0: where it is)
+    land_still: bool = True  # a foot that plants stays where it was on the last frame
+    clearance: float = 0.05  # m: a free foot moving fast is lifted this far off her floor (0: not)
+    clear_rate: float = 0.125  # the clearance's lift changes by at most this share a frame
 
 
 class Placement:
