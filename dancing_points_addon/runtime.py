@@ -106,6 +106,9 @@ FOLLOWER_PULL = 0.1
 # :func:`advance_together`): the leader's head within 5 cm of his root, the
 # follower's pose re-centred on her root every frame.
 RECENTRE_POSE = (0.05, True)
+# The mapping's index of frame t − 1 + k for the trackers' keys k >= 2 (index 0 is
+# frame t + 1): where a key source reads a predicted trajectory.
+KEY_INDEX = F.TRACK_KEYS[1:] - 2
 
 
 class KeySource:
@@ -614,24 +617,21 @@ class Synthesizer:
             out.append(1.0 if y - f < KIN_HEIGHT and speed < KIN_SPEED else 0.0)
         return np.array(out)
 
-    # mapping index of frame t − 1 + k for the keys k >= 2 (index 0 is frame t + 1)
-    _OFF = F.TRACK_KEYS[1:] - 2
-
     def leader_keys(self, root, cur_local, l_roots, l_tr):
         """Leader's key inputs: the current input frame, then the mapping's prediction."""
-        return (np.concatenate([root[None], l_roots.take(self._OFF, axis=0)]),
-                np.concatenate([cur_local[None], l_tr.take(self._OFF, axis=0)]))
+        return (np.concatenate([root[None], l_roots.take(KEY_INDEX, axis=0)]),
+                np.concatenate([cur_local[None], l_tr.take(KEY_INDEX, axis=0)]))
 
     def follower_keys(self, f_roots, f_tr, l_roots, l_tr):
         """Follower's key inputs: last step's prediction of frame t, then this step's.
         With the placement state, the key roots are the predicted trajectory's
         shape from her own root, eased towards her target (``follower.Placement``)."""
-        tracked = np.concatenate([self.prev_follower[1][None], f_tr.take(self._OFF, axis=0)])
+        tracked = np.concatenate([self.prev_follower[1][None], f_tr.take(KEY_INDEX, axis=0)])
         if self._placement is not None:
             off = self._fol_target[0]
             return (self._placement.keys(self.follower.root.tolist(), f_roots, l_roots, self._leader_root, off,
-                                         self._OFF), tracked)
-        return np.concatenate([self.prev_follower[0][None], f_roots.take(self._OFF, axis=0)]), tracked
+                                         KEY_INDEX), tracked)
+        return np.concatenate([self.prev_follower[0][None], f_roots.take(KEY_INDEX, axis=0)]), tracked
 
     # -- a whole take ----------------------------------------------------------
     def calibrate(self, take) -> Calibration:

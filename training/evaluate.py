@@ -24,10 +24,10 @@ from dancing_points_addon import features as F
 from training import metrics as M
 from dancing_points_addon.formats.asf_amc import load_amc
 from training.dataset import FOLLOWER, LEADER, SALSA_TAKES, split_range
-from dancing_points_addon.representation import root_from_head, to_local, to_world
+from dancing_points_addon.representation import device_rotation, root_from_head, to_local, to_world
 from dancing_points_addon.nets import OnnxNet, load_nets
-from dancing_points_addon.runtime import KeySource, SynthesisOptions, Synthesizer
-from dancing_points_addon.skeleton import TRACKED, WRISTS, bone_lengths_from_positions
+from dancing_points_addon.runtime import KEY_INDEX, KeySource, SynthesisOptions, Synthesizer
+from dancing_points_addon.skeleton import HEAD_BONE, TRACKED, WRISTS, bone_lengths_from_positions
 from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
 from dancing_points_addon.calibration import TRAIN_HEIGHT, headset_take, height_from_head
 from dancing_points_addon.formats.devices import DeviceOffsets
@@ -60,9 +60,6 @@ def test_segments(data_dir, takes=SALSA_TAKES, split="test", tracked="leader"):
 
 
 # -- ablations -----------------------------------------------------------------
-_KEY_OFF = F.TRACK_KEYS[1:] - 2  # mapping index of frame t − 1 + k for the keys k >= 2 (as the runtime's)
-
-
 class PastInputKeys(KeySource):
     """(b) trackers fed the past three-point trajectory instead of a future one:
     the leader its own input, the follower (``follower_past``) its own
@@ -94,8 +91,6 @@ class PastInputKeys(KeySource):
         return self._past(self._fh)
 
     def observe(self, synth, tracked, partner):
-        from dancing_points_addon.representation import device_rotation
-        from dancing_points_addon.skeleton import HEAD_BONE
         tr = partner.positions[TRACKED] * synth.scale()
         root = root_from_head(tr[0], device_rotation(partner.rotations[HEAD_BONE]))
         self._fh.append((root, to_local(tr, root)))
@@ -112,8 +107,8 @@ class LeaderTrajKeys(KeySource):
     def follower(self, synth, f_roots, f_tr, l_roots, l_tr):
         prev = self._prev_lead if self._prev_lead is not None else (l_roots[0], l_tr[0])
         self._prev_lead = (l_roots[0], l_tr[0])
-        return (np.concatenate([prev[0][None], l_roots[_KEY_OFF]]),
-                np.concatenate([prev[1][None], l_tr[_KEY_OFF]]))
+        return (np.concatenate([prev[0][None], l_roots[KEY_INDEX]]),
+                np.concatenate([prev[1][None], l_tr[KEY_INDEX]]))
 
 
 class FixedPose:
