@@ -10,10 +10,10 @@ tracked dancer's final pose, and turns
   twist about themselves moves nothing and is no reference, some mocap takes
   have it half a turn off);
 * for ``joints`` devices, whose hand orientation is the ``*wrist`` bone's
-  (SPEC §3: the forearm's end), each arm's elbow round the shoulder–wrist
-  line (the wrist stays) so that the forearm points as the device says (an
-  ``openxr`` grip turns with the hand, whose bend at the wrist is unknown:
-  its elbow stays the network's);
+  (SPEC §3: the forearm's end), each arm by two-bone IK so that the forearm's
+  end points as the device says, its end (the tracked wrist) where it was
+  (an ``openxr`` grip turns with the hand, whose bend at the wrist is
+  unknown: its elbow stays the network's);
 * each forearm's end (bone ``*wrist``, which the CMU skeleton twists: the
   forearm's pronation) about its own axis towards the hand device's
   orientation, within :data:`TWIST_LIMIT_DEG` of the rest of the forearm
@@ -32,7 +32,7 @@ from math import atan2, cos, pi, sin, sqrt
 
 import numpy as np
 
-from .scalar_kernels import mat_mul, mat_vec, two_bone_s
+from .scalar_kernels import mat_mul, mat_vec, rot_between_s, two_bone_s
 from .representation import DEVICE_FROM_HEAD
 from .skeleton import JOINT_INDEX
 
@@ -143,7 +143,9 @@ class DeviceFollow:
         w, rad = side["wrist"], side["radius"]
         e = side["axis"]
         if self.hand_bone == "wrist":  # the device gives the forearm's direction
-            self._elbow(P, rows, side, mat_vec(target, *e))
+            a = mat_vec(target, *e)
+            if not self._forearm(P, rows, side, a):  # out of reach: the elbow swung alone
+                self._elbow(P, rows, side, a)
         Rw = rows[w].tolist()
         d = mat_vec(Rw, *e)  # the forearm's direction
         bone = Rw if self.hand_bone == "wrist" else rows[side["hand"]].tolist()
@@ -161,6 +163,36 @@ class DeviceFollow:
             h = side["hand"]
             local = limit_rotation(mat_mul(_t(Rw), target), self.limits[2])  # within its limit of the forearm
             self._turn(P, rows, side["flexed"], mat_mul(mat_mul(Rw, local), _t(rows[h].tolist())), P[w].tolist())
+
+    @classmethod
+    def _forearm(cls, P, rows, side, axis):
+        """Point the forearm's end (bone ``*wrist``) along ``axis`` (unit), its end
+        point (the tracked wrist) kept: the arm's two-bone IK takes the radius's
+        end to ``wrist − |wrist bone| · axis``, its elbow swung round the shoulder
+        towards where a forearm along ``axis`` would put it, then the wrist bone
+        turns onto ``axis`` about the radius's end. False (and nothing changed)
+        where that radius's end is out of the arm's reach."""
+        hum, rad, w = side["humerus"], side["radius"], side["wrist"]
+        sh, el, re, wr = P[side["clavicle"]].tolist(), P[hum].tolist(), P[rad].tolist(), P[w].tolist()
+        ax, ay, az = axis
+        lw = sqrt((wr[0] - re[0]) ** 2 + (wr[1] - re[1]) ** 2 + (wr[2] - re[2]) ** 2)
+        n = sqrt((re[0] - el[0]) ** 2 + (re[1] - el[1]) ** 2 + (re[2] - el[2]) ** 2)
+        goal = (wr[0] - lw * ax, wr[1] - lw * ay, wr[2] - lw * az)
+        pole = (goal[0] - n * ax, goal[1] - n * ay, goal[2] - n * az)
+        l1 = sqrt((el[0] - sh[0]) ** 2 + (el[1] - sh[1]) ** 2 + (el[2] - sh[2]) ** 2)
+        d = sqrt((goal[0] - sh[0]) ** 2 + (goal[1] - sh[1]) ** 2 + (goal[2] - sh[2]) ** 2)
+        if not abs(l1 - n) * (1.0 + 1e-9) < d < (l1 + n) * (1.0 - 1e-9):
+            return False
+        new_el, _, r1, r2 = two_bone_s(sh, el, re, goal, pole)
+        rows[hum] = mat_mul(r1, rows[hum].tolist())
+        cls._turn(P, rows, side["forearm"], r2, el)
+        P[side["forearm"]] += np.subtract(new_el, el)
+        P[hum] = new_el
+        # the wrist bone onto the tracked wrist (along ``axis``: the radius's end is on its goal)
+        re, cur = P[rad].tolist(), P[w].tolist()
+        D = rot_between_s(cur[0] - re[0], cur[1] - re[1], cur[2] - re[2], wr[0] - re[0], wr[1] - re[1], wr[2] - re[2])
+        cls._turn(P, rows, side["turned"], D, re)
+        return True
 
     @classmethod
     def _elbow(cls, P, rows, side, forearm):
