@@ -28,7 +28,7 @@ on a frame (its orientation a guess) turns nothing.
 """
 from __future__ import annotations
 
-from math import atan2, cos, pi, sin, sqrt
+from math import atan2, cos, dist, pi, sin, sqrt
 
 import numpy as np
 
@@ -175,19 +175,12 @@ class DeviceFollow:
         hum, rad, w = side["humerus"], side["radius"], side["wrist"]
         sh, el, re, wr = P[side["clavicle"]].tolist(), P[hum].tolist(), P[rad].tolist(), P[w].tolist()
         ax, ay, az = axis
-        lw = sqrt((wr[0] - re[0]) ** 2 + (wr[1] - re[1]) ** 2 + (wr[2] - re[2]) ** 2)
-        n = sqrt((re[0] - el[0]) ** 2 + (re[1] - el[1]) ** 2 + (re[2] - el[2]) ** 2)
+        lw, l1, l2 = dist(re, wr), dist(sh, el), dist(el, re)  # wrist bone, humerus, radius
         goal = (wr[0] - lw * ax, wr[1] - lw * ay, wr[2] - lw * az)
-        pole = (goal[0] - n * ax, goal[1] - n * ay, goal[2] - n * az)
-        l1 = sqrt((el[0] - sh[0]) ** 2 + (el[1] - sh[1]) ** 2 + (el[2] - sh[2]) ** 2)
-        d = sqrt((goal[0] - sh[0]) ** 2 + (goal[1] - sh[1]) ** 2 + (goal[2] - sh[2]) ** 2)
-        if not abs(l1 - n) * (1.0 + 1e-9) < d < (l1 + n) * (1.0 - 1e-9):
+        if not abs(l1 - l2) * (1.0 + 1e-9) < dist(sh, goal) < (l1 + l2) * (1.0 - 1e-9):
             return False
-        new_el, _, r1, r2 = two_bone_s(sh, el, re, goal, pole)
-        rows[hum] = mat_mul(r1, rows[hum].tolist())
-        cls._turn(P, rows, side["forearm"], r2, el)
-        P[side["forearm"]] += np.subtract(new_el, el)
-        P[hum] = new_el
+        pole = (goal[0] - l2 * ax, goal[1] - l2 * ay, goal[2] - l2 * az)
+        cls._bend(P, rows, side, sh, el, re, goal, pole)
         # the wrist bone onto the tracked wrist (along ``axis``: the radius's end is on its goal)
         re, cur = P[rad].tolist(), P[w].tolist()
         D = rot_between_s(cur[0] - re[0], cur[1] - re[1], cur[2] - re[2], wr[0] - re[0], wr[1] - re[1], wr[2] - re[2])
@@ -198,11 +191,18 @@ class DeviceFollow:
     def _elbow(cls, P, rows, side, forearm):
         """Swing the elbow round the shoulder–wrist line towards where a forearm
         pointing along ``forearm`` (unit) would put it; the wrist stays."""
-        hum = side["humerus"]
-        sh, el, wr = P[side["clavicle"]].tolist(), P[hum].tolist(), P[side["wrist"]].tolist()
-        n = sqrt((wr[0] - el[0]) ** 2 + (wr[1] - el[1]) ** 2 + (wr[2] - el[2]) ** 2)
+        sh, el, wr = P[side["clavicle"]].tolist(), P[side["humerus"]].tolist(), P[side["wrist"]].tolist()
+        n = dist(el, wr)
         pole = (wr[0] - forearm[0] * n, wr[1] - forearm[1] * n, wr[2] - forearm[2] * n)
-        new_el, _, r1, r2 = two_bone_s(sh, el, wr, wr, pole)
+        cls._bend(P, rows, side, sh, el, wr, wr, pole)
+
+    @classmethod
+    def _bend(cls, P, rows, side, sh, el, end, target, pole):
+        """The arm's two-bone IK (shoulder ``sh``, elbow ``el``, ``end`` the lower
+        bone's end) to ``target`` with the elbow towards ``pole``, applied: the
+        upper arm turned, the forearm's bones turned and moved with the elbow."""
+        hum = side["humerus"]
+        new_el, _, r1, r2 = two_bone_s(sh, el, end, target, pole)
         rows[hum] = mat_mul(r1, rows[hum].tolist())
         cls._turn(P, rows, side["forearm"], r2, el)
         P[side["forearm"]] += np.subtract(new_el, el)

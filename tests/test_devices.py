@@ -181,7 +181,8 @@ def test_forearm_follow_keeps_the_wrist_point_in_and_out_of_reach(synth, take08)
     a longer arm leaves the arm to its elbow swing. Either way the wrist point
     stays where it was, and every bone keeps its length."""
     from dancing_points_addon.device_follow import DeviceFollow
-    from dancing_points_addon.skeleton import PARENTS
+    from dancing_points_addon.ik import rotation_between
+    from dancing_points_addon.skeleton import bone_lengths_from_positions
 
     duet = synth.synthesize(take08[0])
     P0, R0 = duet.leader_positions[60].copy(), duet.leader_rotations[60].copy()
@@ -189,26 +190,21 @@ def test_forearm_follow_keeps_the_wrist_point_in_and_out_of_reach(synth, take08)
     J = JOINT_INDEX
     e = synth.bone_vectors["leader"][J["lwrist"]]
     e = e / np.linalg.norm(e)
-    sh, wr = P0[J["lclavicle"]], P0[J["lwrist"]]
+    sh, el, re, wr = (P0[J[b]] for b in ("lclavicle", "lhumerus", "lradius", "lwrist"))
     out = (wr - sh) / np.linalg.norm(wr - sh)
-
-    def device(axis):  # a rotation taking the bone axis e onto ``axis``
-        v, c = np.cross(e, axis), float(e @ axis)
-        K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-        return np.eye(3) + K + K @ K / (1.0 + c)
-
-    def bones(P):
-        return np.linalg.norm(P[1:] - P[np.array(PARENTS[1:])], axis=-1)
-
-    bent = np.cross(out, (0.0, 1.0, 0.0))
-    bent = (out + 1.5 * bent / np.linalg.norm(bent)) / np.linalg.norm(out + 1.5 * bent / np.linalg.norm(bent))
-    for axis, reach in ((bent, True), (-out, False)):
-        P, R = follow.step(P0.copy(), R0.copy(), None, (device(axis), None))
+    side = np.cross(out, (0.0, 1.0, 0.0))
+    bent = out + 1.5 * side / np.linalg.norm(side)
+    bent /= np.linalg.norm(bent)
+    # along ``-out`` the radius would have to end past the wrist, farther than the arm reaches
+    reach = np.linalg.norm(el - sh) + np.linalg.norm(re - el)
+    assert np.linalg.norm(wr - sh) + np.linalg.norm(wr - re) > reach
+    for axis, reachable in ((bent, True), (-out, False)):
+        P, R = follow.step(P0.copy(), R0.copy(), None, (rotation_between(e, axis), None))
         assert np.abs(P[J["lwrist"]] - wr).max() < 1e-9
-        assert np.abs(bones(P) - bones(P0)).max() < 1e-9
-        got = R[J["lwrist"]] @ e
-        angle = np.degrees(np.arccos(np.clip(got @ axis, -1.0, 1.0)))
-        if reach:
+        lengths = bone_lengths_from_positions(np.stack([P, P0]))
+        assert np.abs(lengths[0] - lengths[1]).max() < 1e-9
+        angle = np.degrees(np.arccos(np.clip(R[J["lwrist"]] @ e @ axis, -1.0, 1.0)))
+        if reachable:
             assert angle < 1e-4
         else:
             assert angle > 10.0  # the elbow swung, the wrist point kept
