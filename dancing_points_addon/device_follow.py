@@ -32,7 +32,7 @@ from math import atan2, cos, dist, pi, sin, sqrt
 
 import numpy as np
 
-from .scalar_kernels import mat_mul, mat_vec, rot_between_s, two_bone_s
+from .scalar_kernels import mat_mul, mat_vec, rot_between_s, transpose_s, two_bone_s
 from .representation import DEVICE_FROM_HEAD
 from .skeleton import JOINT_INDEX
 
@@ -70,11 +70,6 @@ def _axis_angle(axis, angle) -> tuple:
     return (c + x * x * t, x * y * t - z * s, x * z * t + y * s,
             y * x * t + z * s, c + y * y * t, y * z * t - x * s,
             z * x * t - y * s, z * y * t + x * s, c + z * z * t)
-
-
-def _t(A) -> tuple:
-    """The transpose of a row-major 9-sequence."""
-    return (A[0], A[3], A[6], A[1], A[4], A[7], A[2], A[5], A[8])
 
 
 def twist_angle(R, axis) -> float:
@@ -131,7 +126,7 @@ class DeviceFollow:
             un, hd, th = _J["upperneck"], _J["head"], _J["thorax"]
             target = mat_mul(np.ravel(head_device).tolist(), _DEVICE_FROM_HEAD)
             chest = rows[th].tolist()
-            head = mat_mul(chest, limit_rotation(mat_mul(_t(chest), target), self.limits[0]))
+            head = mat_mul(chest, limit_rotation(mat_mul(transpose_s(chest), target), self.limits[0]))
             rows[hd] = head
             P[hd] = P[un] + np.reshape(head, (3, 3)) @ self.head_vec
         for side, target in zip(self.sides, hands):
@@ -149,9 +144,9 @@ class DeviceFollow:
         Rw = rows[w].tolist()
         d = mat_vec(Rw, *e)  # the forearm's direction
         bone = Rw if self.hand_bone == "wrist" else rows[side["hand"]].tolist()
-        phi = twist_angle(mat_mul(target, _t(bone)), d)
+        phi = twist_angle(mat_mul(target, transpose_s(bone)), d)
         # the forearm end's twist relative to the rest of the forearm, kept within its limit
-        tau = twist_angle(mat_mul(_t(rows[rad].tolist()), Rw), e)
+        tau = twist_angle(mat_mul(transpose_s(rows[rad].tolist()), Rw), e)
         lim = self.limits[1]
         want = (tau + phi + pi) % (2.0 * pi) - pi  # the new twist, in (-pi, pi]
         phi = min(max(want, -lim), lim) - tau
@@ -161,8 +156,9 @@ class DeviceFollow:
             self._turn(P, rows, side["turned"], D, P[w].tolist())
         if self.hand_bone == "hand":
             h = side["hand"]
-            local = limit_rotation(mat_mul(_t(Rw), target), self.limits[2])  # within its limit of the forearm
-            self._turn(P, rows, side["flexed"], mat_mul(mat_mul(Rw, local), _t(rows[h].tolist())), P[w].tolist())
+            local = limit_rotation(mat_mul(transpose_s(Rw), target), self.limits[2])  # within its limit of the forearm
+            D = mat_mul(mat_mul(Rw, local), transpose_s(rows[h].tolist()))
+            self._turn(P, rows, side["flexed"], D, P[w].tolist())
 
     @classmethod
     def _forearm(cls, P, rows, side, axis):
