@@ -108,6 +108,13 @@ class FollowerOptions:
     land_still: bool = True  # a foot that plants stays where it was on the last frame
     clearance: float = 0.05  # m: a free foot moving fast is lifted this far off her floor (0: not)
     clear_rate: float = 0.125  # the clearance's lift changes by at most this share a frame
+    # -- the output (``pose.OutputSmoothing``)
+    out_smooth: float | None = None  # share of the last output frame kept in the next (0: none; None: OUT_SMOOTH)
+
+
+# ``FollowerOptions.out_smooth`` by the synthesised partner's dance role: his
+# output (a follower's take) low-passed, hers not (val: docs/experiments.md)
+OUT_SMOOTH = {"leader": 0.3, "follower": 0.0}
 
 
 class Placement:

@@ -231,3 +231,45 @@ class FloorGuard:
             rotations[femur] = r1 @ rotations[femur]
             rotations[tibia] = r2 @ rotations[tibia]
         return positions, rotations
+
+
+class OutputSmoothing:
+    """A causal low-pass on one dancer's output pose (its tracker state is
+    left alone): each frame keeps the share ``keep`` of the last output, of
+    the root's position and of every bone's rotation (the blend taken back to
+    a rotation, Gram-Schmidt on its columns); the joints then follow from the
+    skeleton (``bone_vectors``, forward kinematics), so the pose stays on it.
+    A pose that stays, stays (a planted foot does not slide); motion lags by
+    ``keep / (1 − keep)`` frames."""
+
+    def __init__(self, keep: float, bone_vectors: np.ndarray):
+        if not 0.0 <= keep < 1.0:
+            raise ValueError(f"the smoothing's kept share must be within 0..1 (1 excluded), not {keep!r}")
+        self.keep = float(keep)
+        self.bone_vectors = np.asarray(bone_vectors, dtype=np.float64)
+        self.reset()
+
+    def reset(self):
+        self._prev = None
+
+    def __call__(self, positions, rotations):
+        if self.keep == 0.0:
+            return positions, rotations
+        if self._prev is not None:
+            a, b = self.keep, 1.0 - self.keep
+            pp, pr = self._prev
+            m = a * pr + b * rotations
+            x, y = m[:, :, 0], m[:, :, 1]
+            x = x / np.sqrt((x * x).sum(-1, keepdims=True))
+            y = y - (x * y).sum(-1, keepdims=True) * x
+            y /= np.sqrt((y * y).sum(-1, keepdims=True))
+            rotations = np.empty_like(m)
+            rotations[:, :, 0], rotations[:, :, 1] = x, y
+            x0, x1, x2, y0, y1, y2 = x[:, 0], x[:, 1], x[:, 2], y[:, 0], y[:, 1], y[:, 2]
+            z = rotations[:, :, 2]  # x × y (np.cross costs more than the rest together)
+            z[:, 0], z[:, 1], z[:, 2] = x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0
+            bones = (rotations @ self.bone_vectors[:, :, None])[:, :, 0]
+            bones[0] = 0.0
+            positions = (a * pp[0] + b * positions[0]) + ANCESTORS @ bones
+        self._prev = (positions.copy(), rotations.copy())
+        return positions, rotations

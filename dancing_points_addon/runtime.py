@@ -30,10 +30,10 @@ from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate
 from .dancer_state import DancerState, advance_together
 from .device_follow import DeviceFollow, limit_rotation
 from .duet import Duet, DuetFrame
-from .follower import FollowerOptions, HandHold, HipTwist, Placement, Separation, hip_heading_from_probs
+from .follower import OUT_SMOOTH, FollowerOptions, HandHold, HipTwist, Placement, Separation, hip_heading_from_probs
 from .formats.devices import openxr_to_points
 from .nets import contact_floor_levels, load_nets
-from .pose import LEG_TWIST_DEG, FloorGuard, LegJoints, PoseRecovery, bone_vectors_from_pose
+from .pose import LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose
 from .representation import (hip_frame, root_from_head,
                              root_relative, to_local, to_world)
 from .rotations import quat_to_matrix, rotation_angle
@@ -107,9 +107,9 @@ class SynthesisOptions:
 # ablations) hers is pulled this share of the way to the mapping's prediction.
 FOLLOWER_PULL = 0.1
 # What keeps each tracker's pose state on its root on any length of take (see
-# :func:`advance_together`): the leader's head within 5 cm of his root, the
-# follower's pose re-centred on her root every frame.
-RECENTRE_POSE = (0.05, True)
+# :func:`advance_together`), by the tracker's dance role, tracked or synthesised:
+# his head within 5 cm of his root, her pose re-centred on her root every frame.
+RECENTRE_POSE = {"leader": 0.05, "follower": True}
 # The mapping's index of frame t − 1 + k for the trackers' keys k >= 2 (index 0 is
 # frame t + 1): where a key source reads a predicted trajectory.
 KEY_INDEX = F.TRACK_KEYS[1:] - 2
@@ -219,6 +219,11 @@ class Synthesizer:
                                    + bl[JOINT_INDEX[s + "wrist"]] for s in "lr"])
         self.reset()
 
+    @property
+    def partner_role(self) -> str:
+        """The synthesised partner's dance role (the other one of :attr:`role`)."""
+        return "leader" if self.role == "follower" else "follower"
+
     def set_role(self, role: str) -> None:
         """Track a dancer of ``role`` (SPEC §3 ``role``): the networks made for it
         (:func:`~.nets.load_nets`), from a fresh state."""
@@ -293,6 +298,11 @@ class Synthesizer:
             from . import ik
             self._arm_limit = ik.ArmTurnLimit(fo.arm_turn)
         self._hip_twist = HipTwist(fo) if fo is not None and fo.hip_twist > 0 else None
+        self._out_smooth = None
+        if fo is not None:
+            keep = OUT_SMOOTH[self.partner_role] if fo.out_smooth is None else fo.out_smooth
+            if keep:
+                self._out_smooth = OutputSmoothing(keep, self.bone_vectors["follower"])
         # her legs kept on the skeleton's joints where the anchor pulls them (``pose.LegJoints``)
         self._leg_joints = LegJoints(self.bone_vectors["follower"]) if self._anchor > 0.0 else None
         # her output's thighs: their twist within ``out_thigh_twist`` (the other leg bones' as her state's)
@@ -516,7 +526,7 @@ class Synthesizer:
             fol_root, fol_pull = None, (fk_roots[0], FOLLOWER_PULL)
         pos, rot, (lc, fc) = advance_together(
             (self.leader, self.follower), np.array([lk_roots, fk_roots]), np.array([lk_tr, fk_tr]),
-            (root, fol_root), (None, fol_pull), RECENTRE_POSE)
+            (root, fol_root), (None, fol_pull), (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
         if self._anchor > 0.0:  # her lower body pulled towards the pose anchor's
             legs = self.nets["anchor"](x)[0].astype(np.float64).reshape(-1, 3)
             fp = pos[1]
@@ -540,6 +550,8 @@ class Synthesizer:
         fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
         if self._arm_limit is not None:  # her arms no faster than a real dancer's
             fp, fr = self._arm_limit.step(fp, fr)
+        if self._out_smooth is not None:
+            fp, fr = self._out_smooth(fp, fr)
         if self._net_steps:  # her contacts are what timed her steps
             fc = self._contact_p[4:]
         self.t += 1

@@ -11,7 +11,7 @@ from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.take import Take, read_take, take_from_motion, write_take
 from dancing_points_addon.nets import MODEL_DIR, ROLE_DIRS, check_models
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
-from dancing_points_addon.skeleton import TRACKED, Motion
+from dancing_points_addon.skeleton import PARENTS, TRACKED, Motion
 from support.helpers import run_cli
 from training.dataset import split_range
 
@@ -133,3 +133,52 @@ def test_five_minute_follower_take_stays_together():
     print(f"\nleader-follower max {apart.max():.2f} m (last minute {apart[-1800:].max():.2f}); "
           f"her pelvis-head max {off.max():.2f} m")
     assert apart.max() < 3.0 and off.max() < 0.5
+
+
+def test_his_output_is_low_passed_his_state_not(reversed10):
+    """A follower's take: the synthesised leader's output keeps a share of the
+    last frame (``FollowerOptions.out_smooth``, by his dance role), on his own
+    skeleton, without moving his tracker's state or her; her partner in a
+    leader's take is not smoothed."""
+    from dataclasses import replace
+
+    from dancing_points_addon.follower import OUT_SMOOTH, FollowerOptions
+
+    take, her, him, duet = reversed10
+    assert OUT_SMOOTH["leader"] > 0.0 and OUT_SMOOTH["follower"] == 0.0
+    raw = Synthesizer(follower=replace(FollowerOptions(), out_smooth=0.0)).synthesize(take)
+    np.testing.assert_array_equal(raw.follower_positions, duet.follower_positions)  # her, tracked: untouched
+
+    def jerk(p):
+        return np.linalg.norm(np.diff(p, n=3, axis=0), axis=-1).mean() * F.FPS ** 3
+
+    smooth, plain, truth = jerk(duet.leader_positions), jerk(raw.leader_positions), jerk(him)
+    lag = np.linalg.norm(duet.leader_positions - raw.leader_positions, axis=-1).mean()
+    print(f"\nhis jitter {plain:.0f} -> {smooth:.0f} m/s³ (truth {truth:.0f}); "
+          f"the smoothing moved him {lag * 100:.2f} cm")
+    assert smooth < 0.85 * plain and lag < 0.03
+    bones = np.linalg.norm(duet.bone_vectors["leader"], axis=-1)[1:]
+    pos = duet.leader_positions
+    got = np.linalg.norm(pos[:, 1:] - pos[:, PARENTS[1:]], axis=-1)
+    assert np.abs(got - bones).max() < 1e-6  # still his skeleton
+    r = duet.leader_rotations
+    assert np.abs(r @ np.swapaxes(r, -1, -2) - np.eye(3)).max() < 1e-9  # still rotations
+
+
+def test_output_smoothing_keeps_a_still_pose_and_follows_a_moved_one(reversed10):
+    from dancing_points_addon.pose import OutputSmoothing, bone_vectors_from_pose
+
+    duet = reversed10[3]
+    pos, rot = duet.leader_positions[40], duet.leader_rotations[40]
+    vec = bone_vectors_from_pose(pos, rot)
+    s = OutputSmoothing(0.3, vec)
+    for _ in range(3):  # a pose that stays, stays exactly (a planted foot does not slide)
+        p2, r2 = s(pos.copy(), rot.copy())
+        np.testing.assert_allclose(p2, pos, atol=1e-9)
+        np.testing.assert_allclose(r2, rot, atol=1e-9)
+    moved = pos + np.array([0.1, 0.0, 0.0])
+    steps = [float(s(moved.copy(), rot.copy())[0][0, 0] - pos[0, 0]) for _ in range(12)]
+    assert 0.065 < steps[0] < 0.075 and steps[-1] > 0.0999 and all(np.diff(steps) >= 0)  # 70 % at once, then there
+    assert OutputSmoothing(0.0, vec)(pos, rot)[0] is pos
+    with pytest.raises(ValueError, match="within 0..1"):
+        OutputSmoothing(1.0, vec)
