@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from typing import NamedTuple
 from math import sqrt
 
 import numpy as np
@@ -102,6 +103,16 @@ class SynthesisOptions:
     role: str | None = None
 
 
+class _Read(NamedTuple):
+    """What :meth:`Synthesizer._read` makes of one frame's devices."""
+
+    tracked: np.ndarray  # (3, 3) the three points, cleaned, at the tracker's scale
+    root: np.ndarray  # (4,) their root
+    scale: float  # the tracker's scale
+    x: np.ndarray  # (1, MAP_IN) the mapping's input
+    devices: tuple | None  # the devices' rotations for DeviceFollow (None: not followed)
+
+
 # Each dancer's new root: the leader's is the one his head gives (his root cannot
 # drift); without the follower's placement state (``follower=None``, the
 # ablations) hers is pulled this share of the way to the mapping's prediction.
@@ -110,6 +121,9 @@ FOLLOWER_PULL = 0.1
 # :func:`advance_together`), by the tracker's dance role, tracked or synthesised:
 # his head within 5 cm of his root, her pose re-centred on her root every frame.
 RECENTRE_POSE = {"leader": 0.05, "follower": True}
+# Frames :meth:`Synthesizer.synthesize` reads ahead of the frame loop (between
+# lost devices) to run the networks on the input once for all of them.
+READ_AHEAD = 256
 # The mapping's index of frame t − 1 + k for the trackers' keys k >= 2 (index 0 is
 # frame t + 1): where a key source reads a predicted trajectory.
 KEY_INDEX = F.TRACK_KEYS[1:] - 2
@@ -245,6 +259,7 @@ class Synthesizer:
     # -- state -----------------------------------------------------------------
     def reset(self):
         self.t = 0
+        self._reads = 0  # frames read (:meth:`_read`), ahead of :attr:`t` within a block of :meth:`synthesize`
         self.hist_roots = np.zeros((F.PAST, 4))
         self.hist_tracked = np.zeros((F.PAST, 3, 3))
         self.leader = DancerState(self.nets["leader"], self.default_pose["leader"])
@@ -470,10 +485,21 @@ class Synthesizer:
 
     def _frame(self, positions, quats, valid):
         """:meth:`step` on §2 points above a floor at y = 0."""
+        read = self._read(positions, quats, valid)
+        return self._advance(read, self._input_nets(read.x))
+
+    def _read(self, positions, quats, valid) -> _Read:
+        """The input side of a frame: the devices cleaned (:meth:`_clean`), at
+        the tracker's scale, into the input history, and the mapping's input.
+        It needs the networks' outputs of the last frame only when a device is
+        lost (:meth:`_clean` fills it from the mapping's prediction), so
+        :meth:`synthesize` reads the frames between losses ahead and runs the
+        networks on the input (:meth:`_input_nets`) once for all of them."""
         tracked, head_rot, root = self._clean(positions, quats, valid)
+        devices = None
         if self._follow is not None:  # what the devices measure this frame, for the head and hands to follow
-            self._devices_now = (head_rot if valid[0] else None,
-                                 *(quat_to_matrix(quats[i]) if valid[i] else None for i in (1, 2)))
+            devices = (head_rot if valid[0] else None,
+                       *(quat_to_matrix(quats[i]) if valid[i] else None for i in (1, 2)))
         if valid[0] and self.calibration is None and self.height is None:
             self._head_heights.append(tracked[0, 1])
         s = self.scale()
@@ -481,21 +507,45 @@ class Synthesizer:
         if s != 1.0:  # (×1 changes nothing: skipped)
             tracked_s = tracked * s
             root = root * np.array([s, s, 1.0, 1.0])  # scaling about the origin keeps the heading
-        if self.t == 0:
+        if self._reads == 0:
             self.hist_roots[:] = root
             self.hist_tracked[:] = tracked_s
-            self.leader.place(root)
         else:
             self.hist_roots[:-1] = self.hist_roots[1:]  # (numpy copes with the overlap)
             self.hist_tracked[:-1] = self.hist_tracked[1:]
             self.hist_roots[-1] = root
             self.hist_tracked[-1] = tracked_s
-        x = F.mapping_input(self.hist_roots[None], self.hist_tracked[None])
-        y = self.nets["mapping"](x)
+        self._reads += 1
+        return _Read(tracked_s, root, s, F.mapping_input(self.hist_roots[None], self.hist_tracked[None]), devices)
+
+    def _input_nets(self, x) -> dict:
+        """The networks that read the mapping's input only, on ``x (B, MAP_IN)``:
+        the mapping (her roots the placement network's), and as the options
+        need them the contacts, the pose anchor and the hip heading (each
+        ``(B, …)``; a batch gives each row the bits a batch of one does)."""
+        nets = self.nets
+        y = nets["mapping"](x)
         if self._placement_net:  # her predicted roots from the placement network
-            y = F.splice_follower_roots(y, self.nets["placement"](x))
+            y = F.splice_follower_roots(y, nets["placement"](x))
+        out = {"mapping": y}
         if self._net_steps:
-            p = self.nets["contacts"](x)[0].astype(np.float64)
+            out["contacts"] = nets["contacts"](x)
+        if self._anchor > 0.0:
+            out["anchor"] = nets["anchor"](x)
+        if self._hip_twist is not None:
+            out["hip"] = nets["hip"](x)
+        return out
+
+    def _advance(self, read: _Read, outs: dict):
+        """The rest of a frame (:meth:`_read` gave its input, ``outs`` the
+        networks on it, rows of one frame): both dancers one step on."""
+        root, s, tracked_s, y = read.root, read.scale, read.tracked, outs["mapping"]
+        if read.devices is not None:
+            self._devices_now = read.devices
+        if self.t == 0:
+            self.leader.place(root)
+        if self._net_steps:
+            p = outs["contacts"][0].astype(np.float64)
             b = self.follower_options.contact_smooth
             if b > 0.0 and self._contact_p is not None:
                 p = b * self._contact_p + (1.0 - b) * p
@@ -528,7 +578,7 @@ class Synthesizer:
             (self.leader, self.follower), np.array([lk_roots, fk_roots]), np.array([lk_tr, fk_tr]),
             (root, fol_root), (None, fol_pull), (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
         if self._anchor > 0.0:  # her lower body pulled towards the pose anchor's
-            legs = self.nets["anchor"](x)[0].astype(np.float64).reshape(-1, 3)
+            legs = outs["anchor"][0].astype(np.float64).reshape(-1, 3)
             fp = pos[1]
             fp[LOWER_BODY] += self._anchor * (to_world(legs, hip_frame(fp[None])[0]) - fp[LOWER_BODY])
         if self._separation is not None:
@@ -545,7 +595,7 @@ class Synthesizer:
         if self._anchor > 0.0:  # her output's hip joints turn with her pelvis (her state's need not)
             self._leg_joints.hips(*rigid[1])
         if self._hip_twist is not None:  # her hips towards where the hip-heading network says she faces
-            self._hip_twist.step(*rigid[1], hip_heading_from_probs(self.nets["hip"](x)[0], root))
+            self._hip_twist.step(*rigid[1], hip_heading_from_probs(outs["hip"][0], root))
         lp, lr = self._recover(0, *rigid[0], lc, tracked_s)
         fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
         if self._arm_limit is not None:  # her arms no faster than a real dancer's
@@ -675,17 +725,26 @@ class Synthesizer:
         record = self.record_predictions
         preds = np.empty((T, 2, F.FUTURE, 3, 3), dtype=np.float32) if record else None
         planted = np.zeros((T, 2, 4), dtype=bool) if self._lockers is not None else None
-        for t in range(T):
-            a, b = self._frame(tk.positions[t], tk.quats[t], valid[t])
-            if record:
-                preds[t] = self.last_prediction
-            if planted is not None:
-                planted[t] = self.planted()
-            out["lp"][t], out["lr"][t], out["lc"][t] = a.positions, a.rotations, a.contacts
-            out["fp"][t], out["fr"][t], out["fc"][t] = b.positions, b.rotations, b.contacts
-            if progress is not None and (t % 30 == 0 or t == T - 1):
-                if progress(t + 1, T) is False:
-                    raise KeyboardInterrupt("cancelled")
+        t = 0
+        while t < T:
+            # the frames up to the next lost device read ahead, the input's networks run on them at once
+            end = t + 1
+            while end < min(t + READ_AHEAD, T) and valid[end].all():
+                end += 1
+            reads = [self._read(tk.positions[k], tk.quats[k], valid[k]) for k in range(t, end)]
+            outs = self._input_nets(np.concatenate([r.x for r in reads]))
+            for i, read in enumerate(reads):
+                a, b = self._advance(read, {k: v[i:i + 1] for k, v in outs.items()})
+                if record:
+                    preds[t] = self.last_prediction
+                if planted is not None:
+                    planted[t] = self.planted()
+                out["lp"][t], out["lr"][t], out["lc"][t] = a.positions, a.rotations, a.contacts
+                out["fp"][t], out["fr"][t], out["fc"][t] = b.positions, b.rotations, b.contacts
+                if progress is not None and (t % 30 == 0 or t == T - 1):
+                    if progress(t + 1, T) is False:
+                        raise KeyboardInterrupt("cancelled")
+                t += 1
         if calib.floor_y:  # back onto the take's floor
             for k in ("lp", "fp"):
                 out[k][..., 1] += calib.floor_y

@@ -99,6 +99,40 @@ def test_causal(take10):
         assert not np.array_equal(a[~before], b[~before]), k  # the change does reach later frames
 
 
+@pytest.mark.parametrize("ahead", [None, 7])
+def test_reading_ahead_gives_the_frame_loops_bits(take10, monkeypatch, ahead):
+    """``synthesize`` reads the frames between lost devices ahead and runs the
+    networks on the input once for all of them: its duet is, to the bit, the
+    one that stepping frame by frame gives (a live loop's), with the devices
+    lost at the start, a hand and later the head lost (and blocks of 7
+    frames, so that many blocks end on a loss and many do not)."""
+    from dancing_points_addon import runtime
+    from dancing_points_addon.calibration import apply_calibration
+    from dancing_points_addon.resample import resample_take
+
+    if ahead is not None:
+        monkeypatch.setattr(runtime, "READ_AHEAD", ahead)
+    take = take10[0]
+    pos, q = take.positions.copy(), take.quats.copy()
+    for frames, device in ((slice(0, 20), slice(None)), (slice(80, 110), 1), (slice(160, 180), 0)):
+        pos[frames, device] = np.nan
+        q[frames, device] = np.nan
+    lossy = Take(take.time, pos, q, dict(take.meta))
+    synth = Synthesizer(record_predictions=True)
+    duet = synth.synthesize(lossy)
+    calib = synth.calibrate(lossy)
+    tk = resample_take(apply_calibration(lossy, calib), F.FPS)
+    lost = (~tk.valid).any(axis=1)
+    assert lost.sum() >= 20 and (np.diff(lost.astype(int)) == 1).sum() >= 2 and tk.n_frames == duet.n_frames > 3 * 7
+    synth.set_calibration(calib)
+    for t in range(tk.n_frames):
+        a, b = synth.step_points(tk.positions[t], tk.quats[t], tk.valid[t])
+        assert np.array_equal(a.positions, duet.leader_positions[t]), t
+        assert np.array_equal(b.rotations, duet.follower_rotations[t]), t
+        assert np.array_equal(b.contacts, duet.follower_contacts[t]), t
+        assert np.array_equal(synth.last_prediction, duet.predictions[t]), t
+
+
 @pytest.fixture(scope="module")
 def take08():
     return test_take("08")
