@@ -42,6 +42,7 @@ from math import atan2, cos, hypot, pi, sin
 import numpy as np
 
 from .features import FPS
+from .foot_lock import FootLockOptions
 from .representation import blend_root, compose_floats, relative_rows, segments_gap
 from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, WRISTS
 
@@ -53,66 +54,148 @@ def _compose(ref, rel):
     return compose_floats([float(v) for v in ref], [float(v) for v in rel])
 
 
-@dataclass(frozen=True)
-class FollowerOptions:
-    """The synthesised partner's settings: placement, separation, pose, hips,
-    hand holds and foot lock. Chosen on the val frames; the figures behind each
-    are in models/README.md ("What the runtime does with them") and
-    docs/experiments.md (what else was tried)."""
+def _check(owner, name, value, low=None, high=None, low_open=False):
+    """``value`` within ``low`` .. ``high`` (``low`` excluded when ``low_open``), or
+    a ValueError naming ``owner.name``."""
+    ok = (low is None or (value > low if low_open else value >= low)) and (high is None or value <= high)
+    if not ok:
+        lo = "" if low is None else (f"> {low}" if low_open else f">= {low}")
+        hi = "" if high is None else f"<= {high}"
+        raise ValueError(f"{owner}.{name} must be {' and '.join(x for x in (lo, hi) if x)}, not {value!r}")
 
-    # -- placement (``Placement``)
+
+@dataclass(frozen=True)
+class PlacementOptions:
+    """Where the partner stands and faces (:class:`Placement`) and how far the
+    two torsos stay apart (:class:`Separation`)."""
+
     horizon: int = 10  # predicted frames averaged into the placement target
     pull: float = 0.05  # share of the gap to the target closed per frame
-    pull_heading: float = 0.05  # the same for her heading
-    face_leader: float = 0.5  # share of her target heading turned to face the leader
+    pull_heading: float = 0.05  # the same for the heading
+    face_leader: float = 0.5  # share of the target heading turned to face the tracked dancer
     smooth: float = 0.8  # exponential smoothing of the predicted trajectories across frames (0: none)
     ease: float = 0.1  # per-frame easing of the tracker's keys towards the target
     max_speed: float = 2.5  # m/s, the root's horizontal speed
     max_turn: float = 6.0  # rad/s, the root's turn rate
-    max_offset: float = 2.0  # m, the farthest target from the leader's root
-    max_gap: float = 0.8  # m, the farthest she may lag behind her target (a leash)
-    min_distance: float = 0.2  # m, torso axes (0: no separation)
-    # -- pose
-    anchor: float = 0.3  # share a frame her lower body moves to the pose anchor network's (``pose.LegJoints``; 0: off)
-    arm_turn: float = 30.0  # degrees a frame her arms may turn against her chest (``ik.ArmTurnLimit``; 0: free)
-    # -- hips (``HipTwist``): turned this share towards the hip-heading network's heading (0: off)
-    hip_twist: float = 0.5
-    hip_twist_max: float = 45.0  # degrees, at most
-    hip_twist_rate: float = 0.2  # share of the remaining turn eased a frame
-    # -- her output's legs
-    out_thigh_twist: float = 30.0  # degrees: her output thighs' twist against her pelvis at most (0: unlimited)
-    # -- hand holds (``HandHold``)
-    hold: bool = True  # hand holds by arm IK
-    hold_on: float = 0.7  # m, predicted wrist distance under which a hold is full
-    hold_off: float = 1.0  # m, over which there is none
-    hold_gap: float = 0.09  # m, wrist-to-wrist distance of a hold (wrist joints: the hands between them)
-    hold_frames: int = 6  # the hold's weight changes by at most 1 / hold_frames a frame
-    hold_soft: float = 0.03  # m: his two hands weighted by a softmax of distance / hold_soft (> 0)
-    hold_spring: float = 2.0  # Hz: the pull follows a critically damped spring (> 0)
-    hold_lead: float = 0.5  # share of the pull's own (smoothed) velocity fed forward to the spring (0: none)
-    hold_lead_smooth: float = 0.7  # smoothing of that velocity across frames
-    hold_soft_rate: float = 0.04  # the soft partner's weights change by at most this much a frame (0: free)
-    hold_reach: float = 1.4  # × her arm: a hold whose goal is farther from her shoulder fades out (over 0.1)
-    hold_near: float = 0.35  # × her arm: a hold whose goal is this close to her shoulder fades out (±0.1; 0: never)
-    # -- foot lock (``foot_lock.FootLocker``), her steps timed by the contact network
-    contact_smooth: float = 0.5  # smoothing of the contact probabilities across frames
-    lock_on: float = 0.4  # hysteresis: a point plants above this probability
-    lock_off: float = 0.3  # and lifts below this one
-    lock_drift: float = 0.3  # m: a planted foot lets go when her predicted foot is this far from it
-    step_height: float = 0.04  # m: a release is a catch-up step at least this high
-    step_max: float = 0.06  # m: and at most this high
-    step_frames: int = 9  # frames of a catch-up step
-    lift_ball: bool = True  # the whole foot leaves the floor in a step, its ball too
-    lock_blend: int = 10  # frames a lock blends in over
-    lock_floor: float = 0.01  # m: a planting foot is put at most this far above her floor (< 0: where it is)
-    land_still: bool = True  # a foot that plants stays where it was on the last frame
-    clearance: float = 0.05  # m: a free foot moving fast is lifted this far off her floor (0: not)
-    clear_rate: float = 0.125  # the clearance's lift changes by at most this share a frame
-    # -- the output (``pose.OutputSmoothing``)
+    max_offset: float = 2.0  # m, the farthest target from the tracked dancer's root
+    max_gap: float = 0.8  # m, the farthest the partner may lag behind the target (a leash)
+    min_distance: float = 0.2  # m, between the torso axes (0: no separation)
+
+    def __post_init__(self):
+        _check("PlacementOptions", "horizon", self.horizon, 1)
+        for name in ("pull", "pull_heading", "face_leader", "ease"):
+            _check("PlacementOptions", name, getattr(self, name), 0.0, 1.0)
+        _check("PlacementOptions", "smooth", self.smooth, 0.0, 1.0)
+        for name in ("max_speed", "max_turn", "max_offset", "max_gap"):
+            _check("PlacementOptions", name, getattr(self, name), 0.0, low_open=True)
+        _check("PlacementOptions", "min_distance", self.min_distance, 0.0)
+
+
+@dataclass(frozen=True)
+class PoseOptions:
+    """The partner's body beyond its tracker (``pose.LegJoints``,
+    ``ik.ArmTurnLimit``, ``pose.OutputSmoothing``)."""
+
+    anchor: float = 0.3  # share a frame the lower body moves to the pose anchor network's (0: off)
+    arm_turn: float = 30.0  # degrees a frame an arm may turn against the chest (0: free)
+    out_thigh_twist: float = 30.0  # degrees: the output thighs' twist against the pelvis at most (0: unlimited)
     out_smooth: float | None = None  # share of the last output frame kept in the next (0: none; None: OUT_SMOOTH)
 
+    def __post_init__(self):
+        _check("PoseOptions", "anchor", self.anchor, 0.0, 1.0)
+        _check("PoseOptions", "arm_turn", self.arm_turn, 0.0)
+        _check("PoseOptions", "out_thigh_twist", self.out_thigh_twist, 0.0, 180.0)
+        if self.out_smooth is not None:
+            _check("PoseOptions", "out_smooth", self.out_smooth, 0.0, 0.99)
 
-# ``FollowerOptions.out_smooth`` by the synthesised partner's dance role: his
+
+@dataclass(frozen=True)
+class HipOptions:
+    """The partner's hips turned towards where the hip-heading network says
+    they face (:class:`HipTwist`)."""
+
+    share: float = 0.5  # share of the predicted turn taken (0: off)
+    max_deg: float = 45.0  # degrees, at most
+    rate: float = 0.2  # share of the remaining turn eased a frame
+
+    def __post_init__(self):
+        _check("HipOptions", "share", self.share, 0.0, 1.0)
+        _check("HipOptions", "max_deg", self.max_deg, 0.0, 180.0)
+        _check("HipOptions", "rate", self.rate, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class HoldOptions:
+    """Hand holds: the partner's arms bent onto the tracked dancer's hands
+    (:class:`HandHold`)."""
+
+    enabled: bool = True  # hand holds by arm IK
+    on: float = 0.7  # m, predicted wrist distance under which a hold is full
+    off: float = 1.0  # m, over which there is none
+    gap: float = 0.09  # m, wrist-to-wrist distance of a hold (wrist joints: the hands between them)
+    frames: int = 6  # the hold's weight changes by at most 1 / frames a frame
+    soft: float = 0.03  # m: the two hands held weighted by a softmax of distance / soft
+    spring: float = 2.0  # Hz: the pull follows a critically damped spring
+    lead: float = 0.5  # share of the pull's own (smoothed) velocity fed forward to the spring (0: none)
+    lead_smooth: float = 0.7  # smoothing of that velocity across frames
+    soft_rate: float = 0.04  # the softmax weights change by at most this much a frame (0: free)
+    reach: float = 1.4  # × the arm: a hold whose goal is farther from the shoulder fades out (over 0.1)
+    near: float = 0.35  # × the arm: a hold whose goal is this close to the shoulder fades out (±0.1; 0: never)
+
+    def __post_init__(self):
+        _check("HoldOptions", "on", self.on, 0.0)
+        _check("HoldOptions", "off", self.off, self.on)
+        _check("HoldOptions", "gap", self.gap, 0.0)
+        _check("HoldOptions", "frames", self.frames, 1)
+        _check("HoldOptions", "soft", self.soft, 0.0, low_open=True)
+        _check("HoldOptions", "spring", self.spring, 0.0, low_open=True)
+        for name in ("lead", "lead_smooth", "soft_rate"):
+            _check("HoldOptions", name, getattr(self, name), 0.0, 1.0)
+        _check("HoldOptions", "reach", self.reach, 0.0, low_open=True)
+        _check("HoldOptions", "near", self.near, 0.0)
+
+
+@dataclass(frozen=True)
+class StepOptions:
+    """The partner's steps timed by the contact network (the foot lock's
+    contacts and where a planting foot goes)."""
+
+    contact_smooth: float = 0.5  # smoothing of the contact probabilities across frames
+    lock_floor: float = 0.01  # m: a planting foot is put at most this far above the floor (< 0: where it is)
+
+    def __post_init__(self):
+        _check("StepOptions", "contact_smooth", self.contact_smooth, 0.0, 0.99)
+
+
+# The partner's foot lock: the tracked dancer's (``FootLockOptions()``) with
+# looser switches, longer blends and catch-up steps that lift the whole foot.
+PARTNER_FOOT_LOCK = FootLockOptions(on=0.4, off=0.3, blend_frames=10, max_drift=0.3, step_height=0.04,
+                                    step_max=0.06, step_frames=9, clearance=0.05, clear_rate=0.125,
+                                    land_still=True, lift_ball=True)
+
+
+@dataclass(frozen=True)
+class FollowerOptions:
+    """The synthesised partner's settings, one small options object per part.
+    Chosen on the val frames; the figures behind each are in models/README.md
+    ("What the runtime does with them") and docs/experiments.md (what else
+    was tried)."""
+
+    placement: PlacementOptions = PlacementOptions()  # where the partner stands and faces
+    pose: PoseOptions = PoseOptions()  # the body beyond the tracker
+    hips: HipOptions = HipOptions()  # the hips' turn
+    holds: HoldOptions = HoldOptions()  # hand holds
+    steps: StepOptions = StepOptions()  # steps timed by the contact network
+    foot_lock: FootLockOptions = PARTNER_FOOT_LOCK  # the foot lock (``foot_lock.FootLocker``)
+
+    def __post_init__(self):
+        for name, kind in (("placement", PlacementOptions), ("pose", PoseOptions), ("hips", HipOptions),
+                           ("holds", HoldOptions), ("steps", StepOptions), ("foot_lock", FootLockOptions)):
+            if not isinstance(getattr(self, name), kind):
+                raise TypeError(f"FollowerOptions.{name} must be a {kind.__name__}, not {getattr(self, name)!r}")
+
+
+# ``PoseOptions.out_smooth`` by the synthesised partner's dance role: his
 # output (a follower's take) low-passed, hers not (val: docs/experiments.md)
 OUT_SMOOTH = {"leader": 0.3, "follower": 0.0}
 
@@ -120,7 +203,7 @@ OUT_SMOOTH = {"leader": 0.3, "follower": 0.0}
 class Placement:
     """The follower's root as a state (see the module docstring)."""
 
-    def __init__(self, options: FollowerOptions):
+    def __init__(self, options: PlacementOptions):
         self.o = options
         self._prev = None
         self.leashed = 0  # frames on which the leash engaged (reported, expected rare)
@@ -265,7 +348,7 @@ def hip_heading_from_probs(probs, leader_root) -> float:
 
 class HipTwist:
     """Her hips (pelvis and legs) turned about the vertical through her pelvis,
-    her upper body left as it is (see ``FollowerOptions.hip_twist``). Real
+    her upper body left as it is (see ``HipOptions``). Real
     dancers' hips and heads face apart by 25 degrees on average (the follower's,
     in the salsa val frames); her placement turns her root half way to face
     the leader, which keeps her holds within reach, and the hip-heading
@@ -276,7 +359,7 @@ class HipTwist:
     # the SPEC joint order has them first: a slice (a view) costs less than an index list
     _ROWS = slice(0, len(_LEGS)) if _LEGS == list(range(len(_LEGS))) else _LEGS
 
-    def __init__(self, options: FollowerOptions):
+    def __init__(self, options: HipOptions):
         self.o = options
         self.turn = 0.0  # radians, the current twist
 
@@ -289,9 +372,9 @@ class HipTwist:
         h = atan2(-(lz - rz), lx - rx)
         d = heading - h
         d = atan2(sin(d), cos(d))
-        lim = o.hip_twist_max * pi / 180.0
-        goal = min(max(o.hip_twist * d, -lim), lim)
-        self.turn += o.hip_twist_rate * (goal - self.turn)
+        lim = o.max_deg * pi / 180.0
+        goal = min(max(o.share * d, -lim), lim)
+        self.turn += o.rate * (goal - self.turn)
         c, s_ = cos(self.turn), sin(self.turn)
         turn = np.array([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]])
         pivot = positions[PELVIS].copy()
@@ -304,35 +387,32 @@ class HipTwist:
 class HandHold:
     """Hand holds of the duet: when one of the four leader/follower wrist
     pairs is predicted close, the follower's wrist of that pair is pulled by
-    her arm IK to ``hold_gap`` from the leader's wrist (the leader's wrist is
+    her arm IK to ``gap`` from the leader's wrist (the leader's wrist is
     his tracked hand) on the side of her shoulder. The hold's weight follows
-    a ramp of the predicted distance (full under ``hold_on``, none over
-    ``hold_off``), changing by at most 1 / ``hold_frames`` per frame. Her hand's
-    partner is soft (``hold_soft``): his two wrists weighted by a softmax of
+    a ramp of the predicted distance (full under ``on``, none over
+    ``off``), changing by at most 1 / ``frames`` per frame. Her hand's
+    partner is soft (``soft``): his two wrists weighted by a softmax of
     their predicted distances, so no discrete choice flips between his hands
     on a millimetre of noise (a hard partner that stayed held while his other
     hand was the close one dragged her arm across: a 112° forearm turn in one
     frame). The soft partner's weights change by at most
-    ``hold_soft_rate`` a frame, so when his hands swap as the nearer one her
+    ``soft_rate`` a frame, so when his hands swap as the nearer one her
     wrist goes over in two thirds of a second instead of being swept across. The pull
     (her wrist's offset from where her tracker puts it) follows a critically
-    damped spring of ``hold_spring`` Hz, so its acceleration is bounded and the
+    damped spring of ``spring`` Hz, so its acceleration is bounded and the
     arm does not jerk when a hold starts, ends or changes partner (the hold's
-    jitter, 258 → 176 m/s³ on val); a share ``hold_lead`` of the pull's own
+    jitter, 258 → 176 m/s³ on val); a share ``lead`` of the pull's own
     velocity (smoothed) is fed forward, so the spring does not trail a hold
     that moves at a steady speed. One pair per follower hand. A hold her
-    arm cannot reach (past ``hold_reach`` of its length from her shoulder; her
+    arm cannot reach (past ``reach`` of its length from her shoulder; her
     clavicle helps beyond its length) fades out instead of wrenching the
-    shoulder, and so does one whose goal is within ``hold_near`` of her arm's
+    shoulder, and so does one whose goal is within ``near`` of her arm's
     length from her shoulder (his hand on her back: folding her wrist onto her
     own shoulder flipped her arm)."""
 
     SHOULDERS = (JOINT_INDEX["lclavicle"], JOINT_INDEX["rclavicle"])
 
-    def __init__(self, options: FollowerOptions):
-        if not (options.hold_soft > 0 and options.hold_spring > 0):
-            raise ValueError(f"FollowerOptions.hold_soft and hold_spring must be > 0, not {options.hold_soft!r}, "
-                             f"{options.hold_spring!r}")
+    def __init__(self, options: HoldOptions):
         self.o = options
         self.reset()
 
@@ -360,19 +440,19 @@ class HandHold:
             d = col[1] if col[1] < col[0] else col[0]
             # soft partner: his two hands weighted by a softmax of their
             # predicted distances (no discrete choice to flip on noise)
-            e0, e1 = np.exp(-(pred_dist[:, j] - d) / o.hold_soft).tolist()  # numpy's exp, as before
+            e0, e1 = np.exp(-(pred_dist[:, j] - d) / o.soft).tolist()  # numpy's exp, as before
             sm = e0 + e1
             soft = (e0 / sm, e1 / sm)
-            if o.hold_soft_rate > 0 and self._soft[j] is not None:
+            if o.soft_rate > 0 and self._soft[j] is not None:
                 # his hands swap as her partner gradually: her wrist is not swept across
-                r = o.hold_soft_rate
+                r = o.soft_rate
                 soft = tuple(p + min(max(q - p, -r), r) for p, q in zip(self._soft[j], soft))
             ds = float(np.array(soft) @ pred_dist[:, j])
             self._soft[j] = soft
-            # the weight goes towards a ramp of the distance (full under hold_on,
-            # none over hold_off), at most a step per frame
-            step = 1.0 / max(o.hold_frames, 1)
-            goal_w = min(max((o.hold_off - ds) / max(o.hold_off - o.hold_on, 1e-6), 0.0), 1.0)
+            # the weight goes towards a ramp of the distance (full under on,
+            # none over off), at most a step per frame
+            step = 1.0 / max(o.frames, 1)
+            goal_w = min(max((o.off - ds) / max(o.off - o.on, 1e-6), 0.0), 1.0)
             self.weight[j] += min(max(goal_w - self.weight[j], -step), step)
             if self.weight[j] <= 0.0 and (self._offset[j] is None or max(abs(x) for x in self._offset[j]) < 1e-4):
                 self._offset[j] = self._velocity[j] = self._goal[j] = self._lead[j] = None
@@ -384,15 +464,15 @@ class HandHold:
             sh = follower_pos[self.SHOULDERS[j]].tolist()
             v = [a - b for a, b in zip(sh, lw)]
             n = hypot(*v)
-            goal = [a + b / n * o.hold_gap for a, b in zip(lw, v)] if n > 1e-6 else lw
-            # within reach of her shoulder: full weight up to hold_reach - 0.1 of the arm, none past hold_reach
+            goal = [a + b / n * o.gap for a, b in zip(lw, v)] if n > 1e-6 else lw
+            # within reach of her shoulder: full weight up to reach - 0.1 of the arm, none past reach
             g = [a - b for a, b in zip(goal, sh)]
             reach = hypot(*g) / max(float(arm_length[j]), 1e-6)
-            w = self.weight[j] * min(max((o.hold_reach - reach) / 0.1, 0.0), 1.0)
-            if o.hold_near > 0:
+            w = self.weight[j] * min(max((o.reach - reach) / 0.1, 0.0), 1.0)
+            if o.near > 0:
                 # his hand at her shoulder (his hand on her back, not a hand hold):
                 # her wrist is not folded onto her own shoulder
-                w *= min(max((reach - o.hold_near + 0.1) / 0.2, 0.0), 1.0)
+                w *= min(max((reach - o.near + 0.1) / 0.2, 0.0), 1.0)
             w = w * w * (3.0 - 2.0 * w)  # smoothstep
             # her wrist's offset from her body follows the hold's through a
             # critically damped spring (semi-implicit Euler at 30 Hz): the
@@ -403,14 +483,14 @@ class HandHold:
                 prev, vel = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
             else:
                 vel = self._velocity[j]
-            om = 2.0 * pi * o.hold_spring
+            om = 2.0 * pi * o.spring
             dt = 1.0 / 30.0
             lead = (0.0, 0.0, 0.0)
-            if o.hold_lead > 0 and self._goal[j] is not None:
+            if o.lead > 0 and self._goal[j] is not None:
                 # the pull's own velocity, fed forward
-                lead = [o.hold_lead * (a - b) / dt for a, b in zip(off, self._goal[j])]
-                if o.hold_lead_smooth > 0 and self._lead[j] is not None:
-                    ls = o.hold_lead_smooth
+                lead = [o.lead * (a - b) / dt for a, b in zip(off, self._goal[j])]
+                if o.lead_smooth > 0 and self._lead[j] is not None:
+                    ls = o.lead_smooth
                     lead = [ls * a + (1.0 - ls) * b for a, b in zip(self._lead[j], lead)]
                 self._lead[j] = lead
             self._goal[j] = off

@@ -4,6 +4,7 @@ recovery and visualization"). It uses the scalar kernels of :mod:`.ik`.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from math import pi, sin, sqrt
 
 import numpy as np
@@ -36,6 +37,39 @@ class _Side:
         self.prev = None  # last frame's output (ankle, ball) points
         self.clear = 0.0  # the swing clearance's current lift (m)
         self.need = 0.0  # how far the swing clearance raised the ankle on the last frame (m)
+
+
+@dataclass(frozen=True)
+class FootLockOptions:
+    """One dancer's foot lock (:class:`FootLocker`, where each option is
+    explained). The defaults are the tracked dancer's; the synthesised
+    partner's are ``FollowerOptions.foot_lock``."""
+
+    on: float = 0.6  # a contact point plants above this probability
+    off: float = 0.4  # and lifts below this one
+    blend_frames: int = 8  # frames every mode change blends over
+    max_drift: float = 0.15  # m: a lock lets go when its predicted point is this far from it
+    pole_forward: float = 0.1  # m: the knee's pole, along the femur's +Z from the predicted knee
+    step_height: float = 0.06  # m: a full release is a catch-up step at least this high
+    step_scale: float = 0.3  # its height per metre the foot travels
+    step_max: float = 0.12  # m: and at most this high
+    step_frames: int | None = None  # frames of a catch-up step (None: blend_frames)
+    clearance: float = 0.0  # m: a free foot moving fast is lifted this far off its floor (0: not)
+    clear_speed: tuple = (0.3, 0.6)  # m/s: the lift starts at the first speed and is full from the second
+    clear_rate: float = 0.25  # the lift changes by at most this share of the clearance a frame
+    land_still: bool = False  # a foot that plants stays where it was on the last frame
+    lift_ball: bool = False  # the whole foot leaves the floor in a step, its ball too
+
+    def __post_init__(self):
+        if not 0.0 <= self.off <= self.on <= 1.0:
+            raise ValueError(f"FootLockOptions: need 0 <= off <= on <= 1, not off={self.off!r}, on={self.on!r}")
+        bad = [n for n, v in (("blend_frames", self.blend_frames), ("step_frames", self.step_frames))
+               if v is not None and not v >= 1]
+        bad += [n for n in ("max_drift", "step_height", "step_scale", "step_max", "clearance", "clear_rate")
+                if not getattr(self, n) >= 0.0]
+        if bad or not self.step_height <= self.step_max or not 0.0 <= self.clear_speed[0] < self.clear_speed[1]:
+            raise ValueError(f"FootLockOptions: {', '.join(bad) or 'step_height, step_max or clear_speed'} "
+                             f"out of range in {self!r}")
 
 
 class FootLocker:
@@ -88,7 +122,8 @@ class FootLocker:
     When the lock point is out of the leg's reach the leg is stretched
     straight towards it (the ankle then misses the lock by the shortfall).
 
-    Options off by default (the follower uses them, see ``FollowerOptions``):
+    ``options``: a :class:`FootLockOptions`. Off by default (the partner uses
+    them, see ``FollowerOptions.foot_lock``):
     ``land_still``: a free foot that
     locks stays where it was on the last frame instead of carrying that
     frame's motion into the lock; ``clearance`` (m): a free foot moving
@@ -97,27 +132,22 @@ class FootLocker:
     a frame (see :meth:`_swing`).
     """
 
-    def __init__(self, on: float = 0.6, off: float = 0.4, blend_frames: int = 8,
-                 max_drift: float = 0.15, floor=None, pole_forward: float = 0.1,
-                 step_height: float = 0.06, step_scale: float = 0.3, step_max: float = 0.12,
-                 clearance: float = 0.0, clear_speed=(0.3, 0.6), land_still: bool = False,
-                 step_frames: int | None = None, clear_rate: float = 0.25,
-                 lift_ball: bool = False):
-        if not off <= on:
-            raise ValueError("off threshold must not exceed the on threshold")
-        self.on = float(on)
-        self.off = float(off)
-        self.blend_frames = max(int(blend_frames), 1)
+    def __init__(self, options: FootLockOptions = FootLockOptions(), floor=None):
+        o = options
+        self.options = o
+        self.on = float(o.on)
+        self.off = float(o.off)
+        self.blend_frames = max(int(o.blend_frames), 1)
         # the catch-up step's length (frames; None: ``blend_frames``)
-        self.step_frames = self.blend_frames if step_frames is None else max(int(step_frames), 1)
-        self.max_drift = float(max_drift)
-        self.pole_forward = float(pole_forward)
-        self.step_height, self.step_scale, self.step_max = float(step_height), float(step_scale), float(step_max)
-        self.clearance = float(clearance)
-        self.land_still = bool(land_still)
-        self.clear_speed = (float(clear_speed[0]), float(clear_speed[1]))
-        self.lift_ball = bool(lift_ball)
-        self.clear_rate = float(clear_rate)  # the swing clearance's lift changes by at most this share a frame
+        self.step_frames = self.blend_frames if o.step_frames is None else max(int(o.step_frames), 1)
+        self.max_drift = float(o.max_drift)
+        self.pole_forward = float(o.pole_forward)
+        self.step_height, self.step_scale, self.step_max = float(o.step_height), float(o.step_scale), float(o.step_max)
+        self.clearance = float(o.clearance)
+        self.land_still = bool(o.land_still)
+        self.clear_speed = (float(o.clear_speed[0]), float(o.clear_speed[1]))
+        self.lift_ball = bool(o.lift_ball)
+        self.clear_rate = float(o.clear_rate)  # the swing clearance's lift changes by at most this share a frame
         # each side's last output (ankle, ball) is kept for the options that need its speed
         self._keep_prev = self.clearance > 0.0 or self.land_still
         self.floor = None if floor is None else [float(x) for x in np.asarray(floor).reshape(4)]

@@ -123,7 +123,7 @@ class LegJoints:
     frame): each hip joint rigid with the pelvis (its leg moved with it) and
     each leg bone's twist about itself, relative to its parent, within
     ``LEG_TWIST_DEG``. A pose whose leg positions were pulled from outside
-    (``FollowerOptions.anchor``) is re-aligned by minimal rotations, and
+    (``PoseOptions.anchor``) is re-aligned by minimal rotations, and
     minimal rotations composed frame after frame let a bone's twist drift (her
     thigh 50 degrees off her pelvis at the median, 130 at the 99th percentile,
     on the sample take): the skin at her hips stretched."""

@@ -162,7 +162,7 @@ class Synthesizer:
     pulled towards the raw prediction). Both dancers' next tracker step starts
     from the consistent skeleton pose of this one (pose recovery). The contact
     network (``nets["contacts"]``, on the mapping's input) times the follower's
-    steps: her foot lock reads its probabilities (``FollowerOptions.lock_on``),
+    steps: her foot lock reads its probabilities (``FollowerOptions.foot_lock``),
     and they are her output contacts (with foot locking off, her tracker's are).
     ``record_predictions``: keep each step's mapping prediction
     (:attr:`last_prediction`, :attr:`Duet.predictions`) to show the method; it
@@ -213,14 +213,12 @@ class Synthesizer:
         if self._net_steps and self.floor_levels is None:
             raise ValueError("the follower's foot lock needs the contact network (contacts.onnx "
                              "with floor_levels in its metadata)")
-        # her lower body pulled towards the pose anchor's (``FollowerOptions.anchor``)
-        self._anchor = float(fo.anchor) if fo is not None else 0.0
-        if not 0.0 <= self._anchor <= 1.0:
-            raise ValueError(f"FollowerOptions.anchor must be within 0..1, not {fo.anchor!r}")
+        # her lower body pulled towards the pose anchor's (``PoseOptions.anchor``)
+        self._anchor = float(fo.pose.anchor) if fo is not None else 0.0
         if self._anchor > 0.0 and nets.get("anchor") is None:
-            raise ValueError("FollowerOptions.anchor needs the pose anchor network (pose_anchor.onnx)")
-        if fo is not None and fo.hip_twist > 0 and nets.get("hip") is None:
-            raise ValueError("FollowerOptions.hip_twist needs the hip-heading network (hip_heading.onnx)")
+            raise ValueError("PoseOptions.anchor needs the pose anchor network (pose_anchor.onnx)")
+        if fo is not None and fo.hips.share > 0 and nets.get("hip") is None:
+            raise ValueError("HipOptions.share needs the hip-heading network (hip_heading.onnx)")
         # her roots (where she stands and faces) from the placement network
         self._placement_net = fo is not None
         if self._placement_net and nets.get("placement") is None:
@@ -284,46 +282,38 @@ class Synthesizer:
         self._lockers = None
         self._effector = None
         fo = self.follower_options
-        self._placement = Placement(fo) if fo is not None else None
-        self._separation = Separation(fo.min_distance) if fo is not None else None
-        self._hold = HandHold(fo) if fo is not None and fo.hold else None
+        self._placement = Placement(fo.placement) if fo is not None else None
+        self._separation = Separation(fo.placement.min_distance) if fo is not None else None
+        self._hold = HandHold(fo.holds) if fo is not None and fo.holds.enabled else None
         self._fol_target = None  # (offset from the leader, world root) this frame
         self._contact_p = None  # the contact network's probabilities this frame (leader 4, follower 4)
         self._fol_effector = None
         if self.foot_lock or self.hand_ik:
             from . import ik
             if self.foot_lock:
-                from .foot_lock import FootLocker
-                fol = {} if fo is None else {"max_drift": fo.lock_drift, "step_height": fo.step_height,
-                                            "step_max": fo.step_max, "step_frames": fo.step_frames,
-                                            "clear_rate": fo.clear_rate, "lift_ball": fo.lift_ball,
-                                            "clearance": fo.clearance, "land_still": fo.land_still,
-                                            "blend_frames": fo.lock_blend,
-                                            "on": fo.lock_on, "off": fo.lock_off}
-                self._lockers = (FootLocker(), FootLocker(**fol))
-                if self._net_steps and fo.lock_floor >= 0:  # her locks go on her floor (the train split's)
-                    self._lockers[1].floor = [f + fo.lock_floor for f in self.floor_levels["follower"]]
+                from .foot_lock import FootLocker, FootLockOptions
+                self._lockers = (FootLocker(), FootLocker(fo.foot_lock if fo is not None else FootLockOptions()))
+                if self._net_steps and fo.steps.lock_floor >= 0:  # her locks go on her floor (the train split's)
+                    self._lockers[1].floor = [f + fo.steps.lock_floor for f in self.floor_levels["follower"]]
             if self.hand_ik:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
         if self._hold is not None:
             from . import ik
             self._fol_effector = ik.EndEffectorIK(**self.ik_options)
         self._arm_limit = None
-        if fo is not None and fo.arm_turn > 0:
+        if fo is not None and fo.pose.arm_turn > 0:
             from . import ik
-            self._arm_limit = ik.ArmTurnLimit(fo.arm_turn)
-        self._hip_twist = HipTwist(fo) if fo is not None and fo.hip_twist > 0 else None
+            self._arm_limit = ik.ArmTurnLimit(fo.pose.arm_turn)
+        self._hip_twist = HipTwist(fo.hips) if fo is not None and fo.hips.share > 0 else None
         self._out_smooth = None
         if fo is not None:
-            keep = OUT_SMOOTH[self.partner_role] if fo.out_smooth is None else fo.out_smooth
+            keep = OUT_SMOOTH[self.partner_role] if fo.pose.out_smooth is None else fo.pose.out_smooth
             if keep:
                 self._out_smooth = OutputSmoothing(keep, self.bone_vectors["follower"])
         # her legs kept on the skeleton's joints where the anchor pulls them (``pose.LegJoints``)
         self._leg_joints = LegJoints(self.bone_vectors["follower"]) if self._anchor > 0.0 else None
         # her output's thighs: their twist within ``out_thigh_twist`` (the other leg bones' as her state's)
-        out_twist = float(fo.out_thigh_twist) if fo is not None else 0.0
-        if not 0.0 <= out_twist <= 180.0:
-            raise ValueError(f"FollowerOptions.out_thigh_twist must be within 0..180 degrees, not {out_twist!r}")
+        out_twist = float(fo.pose.out_thigh_twist) if fo is not None else 0.0
         self._out_twist = None
         if out_twist > 0.0:
             limits = list(LEG_TWIST_DEG)
@@ -546,7 +536,7 @@ class Synthesizer:
             self.leader.place(root)
         if self._net_steps:
             p = outs["contacts"][0].astype(np.float64)
-            b = self.follower_options.contact_smooth
+            b = self.follower_options.steps.contact_smooth
             if b > 0.0 and self._contact_p is not None:
                 p = b * self._contact_p + (1.0 - b) * p
             self._contact_p = p
@@ -631,8 +621,8 @@ class Synthesizer:
                 contacts = self._contact_p[4:]
             else:
                 contacts = np.maximum(contacts, self._kinematic_contacts(who, pos))
-                if who == 1 and fo is not None and fo.lock_floor >= 0:  # her new locks go on her floor
-                    self._lockers[1].floor = [f + fo.lock_floor for f in self._floor[1]]
+                if who == 1 and fo is not None and fo.steps.lock_floor >= 0:  # her new locks go on her floor
+                    self._lockers[1].floor = [f + fo.steps.lock_floor for f in self._floor[1]]
             pos, rot = self._lockers[who].step(pos, rot, contacts)
         pos, rot = self._floor_guards[who](pos, rot)  # no foot through the floor
         if who == 1 and self._out_twist is not None:  # her thighs' twist within the real follower's

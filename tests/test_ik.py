@@ -7,7 +7,7 @@ import pytest
 from training import metrics
 from support.helpers import bone_twist_deg
 from dancing_points_addon.formats.asf_amc import load_amc
-from dancing_points_addon.foot_lock import FootLocker
+from dancing_points_addon.foot_lock import FootLocker, FootLockOptions
 from dancing_points_addon.ik import EndEffectorIK, rotation_between, two_bone_ik
 from dancing_points_addon.scalar_kernels import two_bone_s
 from dancing_points_addon.representation import contact_labels, floor_levels
@@ -240,7 +240,7 @@ def test_foot_locker_release_blends_back_to_the_prediction(take):
     C[:20, 0] = 0.9  # left ankle in contact for 20 frames, then released
     C[20:, 0] = 0.5  # between the thresholds: hysteresis keeps the lock
     C[25:, 0] = 0.1
-    out, _, locks = _run_locker(FootLocker(blend_frames=N), P, rot[:T], C)
+    out, _, locks = _run_locker(FootLocker(FootLockOptions(blend_frames=N)), P, rot[:T], C)
     ankle = J["ltibia"]
     assert all(locks[t][0][0] is not None for t in range(25))
     assert np.allclose(out[:25, ankle], out[0, ankle], atol=1e-6)  # locked
@@ -440,7 +440,7 @@ def test_foot_locker_step_frames_sets_the_catch_up_steps_length(take):
     the air for ``blend_frames``)."""
     P, R, C = _drifting_lock(take)
     for kw, n in (({}, 10), ({"step_frames": 5}, 5), ({"step_frames": 14}, 14)):
-        locks = _run_locker(FootLocker(blend_frames=10, max_drift=0.1, **kw), P, R, C)[2]
+        locks = _run_locker(FootLocker(FootLockOptions(blend_frames=10, max_drift=0.1, **kw)), P, R, C)[2]
         released = [t for t in range(1, len(P)) if locks[t - 1][0][0] is not None and locks[t][0][0] is None]
         relocked = [next(u for u in range(t, len(P)) if locks[u][0][0] is not None) for t in released[:-1]]
         assert released and relocked
@@ -460,7 +460,8 @@ def test_foot_locker_heel_released_alone_relocks_after_the_locks_blend(take):
     C = np.zeros((T, 4))
     C[:, 0] = C[:, 1] = 0.9
     for step_frames in (5, 10, 14):
-        locks = _run_locker(FootLocker(blend_frames=10, max_drift=0.05, step_frames=step_frames), P, R, C)[2]
+        options = FootLockOptions(blend_frames=10, max_drift=0.05, step_frames=step_frames)
+        locks = _run_locker(FootLocker(options), P, R, C)[2]
         assert all(lk[0][1] is not None for lk in locks)  # the ball holds throughout
         off = next(t for t in range(1, T) if locks[t - 1][0][0] is not None and locks[t][0][0] is None)
         back = next((t for t in range(off, T) if locks[t][0][0] is not None), None)
@@ -481,8 +482,9 @@ def test_foot_locker_step_and_swing_hand_off_without_a_pop(take):
     floor = [P[0, ankle, 1], P[0, ball, 1], P[0, J["rtibia"], 1], P[0, J["rfoot"], 1]]
     C = np.zeros((60, 4))
     C[15:30, :2] = C[45:, :2] = 0.9
-    locker = FootLocker(blend_frames=10, step_frames=7, step_height=0.04, step_max=0.06, max_drift=0.3,
-                        floor=floor, clearance=0.05, clear_rate=0.125, lift_ball=True, land_still=True)
+    locker = FootLocker(FootLockOptions(blend_frames=10, step_frames=7, step_height=0.04, step_max=0.06, max_drift=0.3,
+                                        clearance=0.05, clear_rate=0.125, lift_ball=True, land_still=True),
+                        floor=floor)
     out, _, locks = _run_locker(locker, P, R, C)
     assert any(lk[0] == (None, None) for lk in locks[15:30]) or any(lk[0][0] is not None for lk in locks[15:30])
     jump = np.abs(np.diff(out[:, [ankle, ball], 1], axis=0)).max()
@@ -502,14 +504,14 @@ def test_foot_locker_lift_ball_lifts_the_whole_foot(take):
     N, h = 7, 0.04
     worst = {}
     for lift_ball in (True, False):
-        locker = FootLocker(blend_frames=10, step_frames=N, step_height=h, step_max=h, max_drift=0.1,
-                            lift_ball=lift_ball)
+        locker = FootLocker(FootLockOptions(blend_frames=10, step_frames=N, step_height=h, step_max=h, max_drift=0.1,
+                                            lift_ball=lift_ball))
         locks = _run_locker(locker, P, R, C)[2]
         t = next(t for t in range(1, len(P)) if locks[t - 1][0] != (None, None) and locks[t][0] == (None, None))
         Q = P.copy()
         Q[t:, [ball, J["ltoes"]], 1] -= 0.04  # toes down from the release on
-        locker = FootLocker(blend_frames=10, step_frames=N, step_height=h, step_max=h, max_drift=0.1,
-                            lift_ball=lift_ball)
+        locker = FootLocker(FootLockOptions(blend_frames=10, step_frames=N, step_height=h, step_max=h, max_drift=0.1,
+                                            lift_ball=lift_ball))
         out, _, locks = _run_locker(locker, Q, R, C)
         assert locks[t - 1][0] != (None, None) and locks[t][0] == (None, None)
         a0, b0 = out[t - 1, ankle, 1], out[t - 1, ball, 1]  # planted heights
@@ -546,14 +548,14 @@ def test_foot_locker_clearance_lifts_a_fast_free_foot(take):
     P, R = _swinging_foot(take)
     ankle, ball, rankle = J["ltibia"], J["lfoot"], J["rtibia"]
     floor = [P[0, ankle, 1], P[0, ball, 1], P[0, rankle, 1], P[0, J["rfoot"], 1]]
-    out, _, locks = _run_locker(FootLocker(floor=floor, clearance=0.05), P, R, np.zeros((len(P), 4)))
+    out, _, locks = _run_locker(FootLocker(FootLockOptions(clearance=0.05), floor=floor), P, R, np.zeros((len(P), 4)))
     assert all(lk == [(None, None), (None, None)] for lk in locks)
     lift = np.minimum(out[:, ankle, 1] - floor[0], out[:, ball, 1] - floor[1])
     print("\nswing clearance over the first frames (cm): " + " ".join(f"{v * 100:.1f}" for v in lift[:8]))
     assert np.all(lift[6:] > 0.05 - 1e-6) and np.abs(np.diff(lift)).max() <= 0.0125 + 1e-6
     assert np.allclose(out[:, rankle], P[:, rankle])
     slow, _ = _swinging_foot(take, speed=0.25)
-    out2, _, _ = _run_locker(FootLocker(floor=floor, clearance=0.05), slow, R, np.zeros((len(P), 4)))
+    out2, _, _ = _run_locker(FootLocker(FootLockOptions(clearance=0.05), floor=floor), slow, R, np.zeros((len(P), 4)))
     assert np.allclose(out2, slow)
 
 
@@ -564,7 +566,8 @@ def test_foot_locker_clear_rate_sets_how_fast_the_clearance_rises(take):
     P, R = _swinging_foot(take, T=40)
     ankle, ball = J["ltibia"], J["lfoot"]
     floor = [P[0, ankle, 1], P[0, ball, 1], P[0, J["rtibia"], 1], P[0, J["rfoot"], 1]]
-    out, _, _ = _run_locker(FootLocker(floor=floor, clearance=0.05, clear_rate=1 / 16), P, R, np.zeros((40, 4)))
+    locker = FootLocker(FootLockOptions(clearance=0.05, clear_rate=1 / 16), floor=floor)
+    out, _, _ = _run_locker(locker, P, R, np.zeros((40, 4)))
     lift = np.minimum(out[:, ankle, 1] - floor[0], out[:, ball, 1] - floor[1])
     assert np.abs(np.diff(lift)).max() <= 0.05 / 16 + 1e-6
     assert np.all(lift[20:] > 0.05 - 1e-6)
@@ -581,7 +584,7 @@ def test_foot_locker_land_still_plants_where_the_foot_was(take):
     C = np.zeros((len(P), 4))
     C[20:, 0] = C[20:, 1] = 0.9
     for still in (True, False):
-        out, _, locks = _run_locker(FootLocker(land_still=still), P, R, C)
+        out, _, locks = _run_locker(FootLocker(FootLockOptions(land_still=still)), P, R, C)
         assert locks[19][0] == (None, None) and locks[20][0][0] is not None
         step = np.linalg.norm((out[20, ankle] - out[19, ankle])[[0, 2]])
         after = np.linalg.norm(np.diff(out[20:, ankle][:, [0, 2]], axis=0), axis=-1).max()

@@ -137,16 +137,14 @@ def test_five_minute_follower_take_stays_together():
 
 def test_his_output_is_low_passed_his_state_not(reversed10):
     """A follower's take: the synthesised leader's output keeps a share of the
-    last frame (``FollowerOptions.out_smooth``, by his dance role), on his own
+    last frame (``PoseOptions.out_smooth``, by his dance role), on his own
     skeleton, without moving his tracker's state or her; her partner in a
     leader's take is not smoothed."""
-    from dataclasses import replace
-
-    from dancing_points_addon.follower import OUT_SMOOTH, FollowerOptions
+    from dancing_points_addon.follower import OUT_SMOOTH, FollowerOptions, PoseOptions
 
     take, her, him, duet = reversed10
     assert OUT_SMOOTH["leader"] > 0.0 and OUT_SMOOTH["follower"] == 0.0
-    raw = Synthesizer(follower=replace(FollowerOptions(), out_smooth=0.0)).synthesize(take)
+    raw = Synthesizer(follower=FollowerOptions(pose=PoseOptions(out_smooth=0.0))).synthesize(take)
     np.testing.assert_array_equal(raw.follower_positions, duet.follower_positions)  # her, tracked: untouched
 
     def jerk(p):

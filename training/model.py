@@ -204,7 +204,7 @@ class PoseAnchorNet(MappingNet):
     in her own hip frame (``representation.hip_frame``), ``(B, 30)``. An MLP
     trained on the squared error. It knows nothing of her previous frames: the
     runtime pulls her tracker's closed-loop legs a share of the way to it each
-    frame (``FollowerOptions.anchor``; models/README.md, "Pose anchor")."""
+    frame (``PoseOptions.anchor``; models/README.md, "Pose anchor")."""
 
     def __init__(self, n_in, n_out=3 * len(LOWER_BODY), hidden=512, layers=3, noise=0.05, dropout=0.2):
         super().__init__(n_in, n_out, hidden, layers, noise, dropout)
@@ -259,7 +259,7 @@ class HipHeadingNet(ContactNet):
     *relative to his root's heading* at the current frame over
     ``follower.HIP_BINS`` bins of the full turn, ``(B, HIP_BINS)`` (softmax in the
     graph). Cross-entropy on one-hot targets. The runtime turns her hips towards
-    the bins' circular mean (``FollowerOptions.hip_twist``): a heading read from
+    the bins' circular mean (``HipOptions``): a heading read from
     bins copes with the spins, where a regressed one averages a turn away."""
 
     def __init__(self, n_in, n_out=HIP_BINS, hidden=512, layers=3, noise=0.05, dropout=0.2):
