@@ -642,3 +642,31 @@ def test_splice_takes_her_roots_only():
     (ol_r, ol_p), (of_r, of_p) = F.decode_mapping(out, lead)
     assert np.array_equal(ol_r, yl_r) and np.array_equal(ol_p, yl_p) and np.array_equal(of_p, yf_p)
     assert np.array_equal(of_r, qf_r) and not np.allclose(of_r, yf_r) and not np.allclose(ql_r, yl_r)
+
+
+def test_options_check_themselves():
+    """Each options part refuses a value out of its range with its own name,
+    on creation; the defaults are the shipped runtime's."""
+    from dancing_points_addon.follower import (PARTNER_FOOT_LOCK, FollowerOptions, HipOptions, HoldOptions,
+                                               PlacementOptions, PoseOptions, StepOptions)
+    from dancing_points_addon.foot_lock import FootLocker, FootLockOptions
+
+    for make, match in ((lambda: PlacementOptions(pull=1.5), "PlacementOptions.pull"),
+                        (lambda: PlacementOptions(horizon=0), "PlacementOptions.horizon"),
+                        (lambda: PoseOptions(anchor=-0.1), "PoseOptions.anchor"),
+                        (lambda: PoseOptions(out_smooth=1.0), "PoseOptions.out_smooth"),
+                        (lambda: HipOptions(max_deg=200.0), "HipOptions.max_deg"),
+                        (lambda: HoldOptions(soft=0.0), "HoldOptions.soft"),
+                        (lambda: HoldOptions(on=1.2, off=1.0), "HoldOptions.off"),
+                        (lambda: StepOptions(contact_smooth=1.0), "StepOptions.contact_smooth"),
+                        (lambda: FootLockOptions(on=0.3, off=0.4), "off <= on"),
+                        (lambda: FootLockOptions(step_frames=0), "step_frames")):
+        with pytest.raises(ValueError, match=match):
+            make()
+    with pytest.raises(TypeError, match="FollowerOptions.holds"):
+        FollowerOptions(holds=PoseOptions())
+    o = FollowerOptions()
+    assert o.foot_lock == PARTNER_FOOT_LOCK and FootLocker(o.foot_lock).blend_frames == 10
+    assert FootLocker().options == FootLockOptions() and FootLocker().on == 0.6
+    with pytest.raises(AttributeError):
+        o.holds.reach = 2.0  # frozen
