@@ -37,7 +37,7 @@ PRED_HOLD = np.array([[0.1, 2.0], [2.0, 2.0]])  # his left and her left predicte
 
 def test_a_hold_brings_her_wrist_to_his_hand():
     """A predicted hold, his hand in front of her shoulder within reach: her
-    left wrist target settles at ``hold_gap`` from his wrist, on her side; her
+    left wrist target settles at ``HoldOptions.gap`` from his wrist, on her side; her
     other hand is left alone."""
     o = HoldOptions()
     his, her = _poses((0.2, 1.2, 0.4))
@@ -51,14 +51,14 @@ def test_a_hold_brings_her_wrist_to_his_hand():
 
 @pytest.mark.parametrize("where, pulled", [
     (1.02, True),  # past her arm's length: the clavicle helps, still held
-    (1.25, True),  # past her arm's length, within hold_reach - 0.1
-    (1.45, False),  # past hold_reach (1.4 of her arm): faded out
+    (1.25, True),  # past her arm's length, within reach - 0.1
+    (1.45, False),  # past reach (1.4 of her arm): faded out
     (0.15, False),  # at her shoulder (his hand on her back): faded out
     (0.60, True),
 ])
 def test_how_far_a_hold_reaches(where, pulled):
     """His hand ``where`` × her arm in front of her shoulder (the goal lies
-    ``hold_gap`` nearer): pulled or not."""
+    ``gap`` nearer): pulled or not."""
     o = HoldOptions()
     dist = where * ARM + o.gap
     his, her = _poses((0.18, 1.4, dist))  # straight in front of her left shoulder

@@ -556,7 +556,7 @@ def test_her_output_thighs_twist_as_a_real_dancers(take10, duet10):
 def test_hip_twist_turns_her_hips_not_her_shoulders(take10):
     """``follower.HipTwist`` on a real follower pose (take 10): her hips turn
     about the vertical through her pelvis the share ``hip_twist`` of the way to
-    the given heading, at most ``hip_twist_max``, eased by ``hip_twist_rate``;
+    the given heading, at most ``HipOptions.max_deg``, eased by ``HipOptions.rate``;
     her upper body and her pelvis's position do not move, and her legs keep
     their shape."""
     from math import atan2, degrees, radians
