@@ -258,3 +258,69 @@ def test_train_command_trains_and_reexports_the_placement_network(salsa_dir, tmp
     a, b = (ort.InferenceSession(str(d / "placement.onnx"), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
             for d in (out, again))
     assert a.shape == (4, F.MAP_OUT) and np.allclose(a, b, atol=1e-5)
+
+
+def test_solo_clips_hold_the_trackers_takes_only():
+    """SPEC §5: the trackers may learn from solo takes 05_01-05_10 and never from
+    05_11-05_20. Each 120 Hz take gives its four 30 Hz phases; fit and val tile
+    the take; no split reaches a held-out take."""
+    from conftest import SOLO
+    from training.dataset import SOLO_HELD_OUT, solo_clips
+
+    fit, val = solo_clips(SOLO, "fit", mirror_aug=False), solo_clips(SOLO, "val", mirror_aug=False)
+    train = solo_clips(SOLO, "train")
+    takes = {c.name[:5] for c in train}
+    assert takes == {f"05_{i:02d}" for i in range(1, 11)} and not takes & set(SOLO_HELD_OUT)
+    assert len(train) == 2 * len(takes) * 4 and all(c.follower is None for c in train)
+    for take in takes:  # the four phases of fit hold the first 80 % of the 120 Hz frames, val the rest
+        n120 = sum(c.n_frames for c in train if c.name.startswith(take) and not c.mirrored)
+        n_fit = sum(c.n_frames for c in fit if c.name.startswith(take))
+        assert n_fit == int(np.floor(0.8 * n120))
+        assert all(c.n_frames > 31 for c in val)  # a phase too short for a sample is left out
+        assert sum(c.n_frames for c in val if c.name.startswith(take)) in (0, n120 - n_fit) or \
+            len([c for c in val if c.name.startswith(take)]) < 4
+    for split in ("test", "held-out"):
+        with pytest.raises(ValueError, match="held out"):
+            solo_clips(SOLO, split)
+
+
+def test_body_clips_bring_every_body_to_the_training_head_and_reshape_within_the_spread(clips):
+    """A tracker of several bodies learns each at the runtime's scale (its
+    upright head at the training leader's) and from body-shape copies whose
+    bones keep one length through the clip, within the spread of the source's."""
+    from dancing_points_addon.skeleton import bone_lengths_from_positions
+    from training.data import body_clips, head_height, reshape_body
+
+    few = clips[:4]
+    his = head_height([type(c)(c.name, c.leader, None, c.mirrored) for c in few])
+    out = body_clips(few, None, ("follower", "leader"), his, np.random.default_rng(1), 0.08, 1)
+    assert len(out) == 2 * 2 * len(few)
+    bodies = [out[:len(few)], out[len(few):2 * len(few)]]
+    for body in bodies:
+        assert abs(head_height(body) - his) < 1e-9
+    src = few[0].follower
+    assert np.allclose(reshape_body(src.positions, src.rotations, np.ones(31)), src.positions, atol=1e-9)
+    copy, orig = out[2 * len(few)], out[0]
+    lc, lo = bone_lengths_from_positions(copy.leader.positions), bone_lengths_from_positions(orig.leader.positions)
+    assert np.ptp(lc[:, 1:], axis=0).max() < 1e-6  # rigid: one length per bone through the clip
+    ratio = lc[0, 1:] / lo[0, 1:]
+    ratio /= np.median(ratio)  # the copy is scaled back to the head height as a whole
+    assert ratio.max() / ratio.min() < (1.08 / 0.92) ** 2 + 1e-6 and ratio.max() / ratio.min() > 1.01
+    assert abs(head_height([copy]) - his) < 1e-9
+
+
+def test_solo_segments_are_the_held_out_takes_at_their_own_rate(salsa_dir):
+    """SPEC §6 "on unseen dancers": the held-out solo takes whole at 120 Hz,
+    scored against every 4th frame; val is the end of the trackers' takes."""
+    from conftest import SOLO
+    from training.evaluate import solo_segments
+
+    test = list(solo_segments(SOLO, "test", salsa_dir))
+    assert [s["take"] for s in test] == [f"05_{i:02d}" for i in range(11, 21)]
+    s = test[0]
+    assert s["lead60"].fps == 120.0 and len(s["lead"][0]) == (s["lead60"].n_frames + 3) // 4
+    assert np.array_equal(s["lead"][0][1], s["lead60"].positions[4])
+    val = list(solo_segments(SOLO, "val", salsa_dir))
+    assert [s["take"] for s in val] == [f"05_{i:02d}" for i in range(1, 11)]
+    with pytest.raises(ValueError):
+        list(solo_segments(SOLO, "train"))

@@ -189,3 +189,78 @@ def device_offset_clips(clips, rng, offset_m: float = 0.03, scale: float = 0.03)
         fol = type(Fo)(Fo.positions * s, Fo.rotations, Fo.roots * np.array([s, s, 1.0, 1.0]), Fo.contacts)
         out.append(type(c)(c.name + "o", lead, fol, c.mirrored))
     return out
+
+
+# body-shape augmentation: bone groups scaled together, both sides alike
+SHAPE_GROUPS = {
+    "spine": ("lowerback", "upperback", "thorax"),
+    "neck": ("lowerneck", "upperneck", "head"),
+    "shoulders": ("lclavicle", "rclavicle"),
+    "upper arms": ("lhumerus", "rhumerus"),
+    "forearms": ("lradius", "rradius"),
+    "hands": ("lwrist", "lhand", "lfingers", "lthumb", "rwrist", "rhand", "rfingers", "rthumb"),
+    "hips": ("lhipjoint", "rhipjoint"),
+    "thighs": ("lfemur", "rfemur"),
+    "shins": ("ltibia", "rtibia"),
+    "feet": ("lfoot", "ltoes", "rfoot", "rtoes"),
+}
+
+
+def head_height(clips) -> float:
+    """A body's upright head height over its (unmirrored) clips: the percentile
+    of the head point's height that the runtime's calibration reads."""
+    from dancing_points_addon.calibration import HEAD_PERCENTILE
+
+    return float(np.percentile(np.concatenate([c.leader.positions[:, TRACKED[0], 1] for c in clips
+                                               if not c.mirrored] or [c.leader.positions[:, TRACKED[0], 1]
+                                                                       for c in clips]), HEAD_PERCENTILE))
+
+
+def reshape_body(positions, rotations, factors) -> np.ndarray:
+    """Positions ``(T, 31, 3)`` of the same motion (root path and bone
+    rotations) on a skeleton whose bones are ``factors (31,)`` times as long."""
+    from dancing_points_addon.pose import ANCESTORS, bone_vectors_from_pose
+
+    bv = bone_vectors_from_pose(positions[0], rotations[0]) * factors[:, None]
+    vec = np.einsum("tnij,nj->tni", rotations, bv)
+    vec[:, 0] = 0.0
+    return positions[:, :1] + np.einsum("nk,tki->tni", ANCESTORS, vec)
+
+
+def body_clips(duet_clips, solo, bodies, train_head: float, rng=None, shape: float = 0.0, copies: int = 0):
+    """Single-dancer clips (the dancer in ``leader``) of every body in ``bodies``
+    ("leader", "follower": the salsa dancers of ``duet_clips``; "solo": the
+    clips ``solo``), each body scaled as a whole so that its upright head is at
+    ``train_head`` (as the runtime scales a wearer to the training height), for
+    a tracker that serves any body. ``copies`` more copies of every clip with
+    each bone group (:data:`SHAPE_GROUPS`) ``1 ± shape`` as long (uniform, one
+    draw per clip), scaled back to ``train_head``: bodies between and beyond
+    those of the data."""
+    from dancing_points_addon.skeleton import JOINT_INDEX as J
+    from training.dataset import Clip, Dancer
+
+    out = []
+    for body in bodies:
+        if body == "solo":
+            src = list(solo or [])
+        else:
+            src = [Clip(c.name + body[0], getattr(c, body), None, c.mirrored) for c in duet_clips
+                   if getattr(c, body) is not None]
+        if not src:
+            continue
+        s = train_head / head_height(src)
+        for c in src:
+            d = c.leader
+            out.append(Clip(c.name, Dancer.from_arrays(d.positions * s, d.rotations), None, c.mirrored))
+    if copies and shape > 0:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        base = list(out)
+        for k in range(copies):
+            for c in base:
+                f = np.ones(31)
+                for names in SHAPE_GROUPS.values():
+                    f[[J[n] for n in names]] = 1.0 + rng.uniform(-shape, shape)
+                pos = reshape_body(c.leader.positions, c.leader.rotations, f)
+                s = train_head / head_height([Clip("", Dancer(pos, None, None, None), None)])
+                out.append(Clip(f"{c.name}s{k}", Dancer.from_arrays(pos * s, c.leader.rotations), None, c.mirrored))
+    return out

@@ -22,6 +22,8 @@ from dancing_points_addon.skeleton import MIRROR
 
 SALSA_TAKES = tuple(f"{i:02d}" for i in range(1, 14))
 LEADER, FOLLOWER = "60", "61"
+SOLO_TRAIN_TAKES = tuple(f"05_{i:02d}" for i in range(1, 11))  # SPEC §5: the trackers may learn from these
+SOLO_HELD_OUT = tuple(f"05_{i:02d}" for i in range(11, 21))  # SPEC §5: never trained on or chosen by
 TRAIN_SHARE = 0.8
 FIT_SHARE = 0.8  # of the train frames: "fit" then "val", for choosing a recipe without the test frames
 CACHE_VERSION = 2
@@ -93,9 +95,8 @@ def load_pair(data_dir, take: str, split: str):
     return (lead.positions[a:b], lead.rotations[a:b]), (fol.positions[a:b], fol.rotations[a:b])
 
 
-def build_clips(data_dir, split: str = "train", mirror_aug: bool = True, solo_dir=None):
-    """Clips of a split. ``solo_dir`` adds the solo takes (leader only, whole takes,
-    120 Hz -> 30 Hz by keeping every 4th frame) as extra tracking data."""
+def build_clips(data_dir, split: str = "train", mirror_aug: bool = True):
+    """The salsa clips of a split."""
     clips = []
     for take in SALSA_TAKES:
         (lp, lr), (fp, fr) = load_pair(data_dir, take, split)
@@ -103,32 +104,46 @@ def build_clips(data_dir, split: str = "train", mirror_aug: bool = True, solo_di
         if mirror_aug:
             clips.append(Clip(take + "m", Dancer.from_arrays(*mirror(lp, lr)),
                               Dancer.from_arrays(*mirror(fp, fr)), True))
-    if solo_dir is not None and split in ("train", "fit"):
-        for f in sorted(os.listdir(solo_dir)):
-            if f.endswith(".amc"):
-                m = load_amc(os.path.join(solo_dir, f)).subsample(4)
-                clips.append(Clip("solo" + f[:-4], Dancer.from_arrays(m.positions, m.rotations), None))
+    return clips
+
+
+def solo_clips(solo_dir, split: str = "train", mirror_aug: bool = True):
+    """The solo dancer's clips for the trackers (SPEC §5: takes ``05_01``–``05_10``
+    only; ``05_11``–``05_20`` are held out). Each 120 Hz take gives four 30 Hz
+    clips, one per phase of every 4th frame; "train" is the whole take, "fit"
+    and "val" its first 80 % and the rest (as the salsa takes' train frames)."""
+    if split not in ("train", "fit", "val"):
+        raise ValueError(f"the solo takes have no {split!r} frames (SPEC §5: 05_11-05_20 are held out)")
+    clips = []
+    for take in SOLO_TRAIN_TAKES:
+        m = load_amc(os.path.join(solo_dir, f"{take}.amc"))
+        f = int(np.floor(FIT_SHARE * m.n_frames))
+        a, b = {"train": (0, m.n_frames), "fit": (0, f), "val": (f, m.n_frames)}[split]
+        for phase in range(4):
+            pos, rot = m.positions[a + phase:b:4], m.rotations[a + phase:b:4]
+            if len(pos) <= 31:
+                continue
+            clips.append(Clip(f"{take}p{phase}", Dancer.from_arrays(pos, rot), None))
+            if mirror_aug:
+                clips.append(Clip(f"{take}p{phase}m", Dancer.from_arrays(*mirror(pos, rot)), None, True))
     return clips
 
 
 _KEYS = ("positions", "rotations", "roots", "contacts")
 
 
-def _cache_key(data_dir, split, mirror_aug, solo_dir):
+def _cache_key(data_dir, split, mirror_aug):
     h = hashlib.sha1()
-    for d in (data_dir, solo_dir):
-        if d is None:
-            continue
-        for f in sorted(os.listdir(d)):
-            st = os.stat(os.path.join(d, f))
-            h.update(f"{f}:{st.st_size}:{int(st.st_mtime)}".encode())
-    h.update(json.dumps([split, mirror_aug, solo_dir is not None, CACHE_VERSION]).encode())
+    for f in sorted(os.listdir(data_dir)):
+        st = os.stat(os.path.join(data_dir, f))
+        h.update(f"{f}:{st.st_size}:{int(st.st_mtime)}".encode())
+    h.update(json.dumps([split, mirror_aug, False, CACHE_VERSION]).encode())
     return h.hexdigest()[:16]
 
 
-def load_clips(data_dir, split="train", mirror_aug=True, solo_dir=None, cache_dir="cache"):
+def load_clips(data_dir, split="train", mirror_aug=True, cache_dir="cache"):
     """:func:`build_clips` through an ``.npz`` cache (keyed by the source files)."""
-    key = _cache_key(data_dir, split, mirror_aug, solo_dir)
+    key = _cache_key(data_dir, split, mirror_aug)
     path = os.path.join(cache_dir, f"salsa_{split}_{key}.npz") if cache_dir else None
     if path and os.path.exists(path):
         z = np.load(path, allow_pickle=False)
@@ -140,7 +155,7 @@ def load_clips(data_dir, split="train", mirror_aug=True, solo_dir=None, cache_di
                 return Dancer(*(z[f"{role}{i}_{k}"] for k in _KEYS))
             clips.append(Clip(str(name), dancer("L"), dancer("F"), bool(z["mirrored"][i])))
         return clips
-    clips = build_clips(data_dir, split, mirror_aug, solo_dir)
+    clips = build_clips(data_dir, split, mirror_aug)
     if path:
         os.makedirs(cache_dir, exist_ok=True)
         arrays = {"names": np.array([c.name for c in clips]),

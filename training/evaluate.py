@@ -59,6 +59,28 @@ def test_segments(data_dir, takes=SALSA_TAKES, split="test", tracked="leader"):
                "lead_vec": lead.bone_vectors, "ref_vec": ref}
 
 
+def solo_segments(solo_dir, split="test", ref_dir=None):
+    """The solo dancer's segments (SPEC §6 "on unseen dancers"): ``split="test"``
+    the held-out takes 05_11-05_20 whole, at their native 120 Hz; "val" the
+    last 20 % of 05_01-05_10 (the trackers' fit cut learns the rest). Only the
+    leader's figures mean anything (his slot is the solo dancer; the follower's
+    "truth" is a copy of his)."""
+    from training.dataset import FIT_SHARE, SOLO_HELD_OUT, SOLO_TRAIN_TAKES
+
+    if split not in ("test", "val"):
+        raise ValueError("the solo takes are scored on test (05_11-05_20) or val (the end of 05_01-05_10)")
+    ref = load_amc(os.path.join(ref_dir, f"{LEADER}_01.amc")).bone_vectors if ref_dir else None
+    for take in (SOLO_HELD_OUT if split == "test" else SOLO_TRAIN_TAKES):
+        m = load_amc(os.path.join(solo_dir, f"{take}.amc"))
+        step = int(round(m.fps / F.FPS))
+        a = 0 if split == "test" else int(np.floor(FIT_SHARE * m.n_frames))
+        native = type(m)(m.positions[a:], m.rotations[a:], m.fps, m.bone_vectors, m.source)
+        gt = (m.positions[a::step], m.rotations[a::step])
+        yield {"take": take, "lead60": native, "lead": gt, "fol": gt,
+               "lead_len": m.bone_lengths(), "fol_len": m.bone_lengths(),
+               "lead_vec": m.bone_vectors, "ref_vec": ref if ref is not None else m.bone_vectors}
+
+
 # -- ablations -----------------------------------------------------------------
 class PastInputKeys(KeySource):
     """(b) trackers fed the past three-point trajectory instead of a future one:
@@ -444,6 +466,10 @@ def main(argv=None):
     ap.add_argument("--tracked", choices=("leader", "follower"), default="leader",
                     help="follower: her three points as a leader's take (SPEC §6 'on unseen dancers'; only the "
                          "leader's figures mean anything, and they are hers)")
+    ap.add_argument("--solo", default=None, metavar="DIR",
+                    help="the solo dancer's takes instead of the salsa takes (SPEC §6 'on unseen dancers'): "
+                         "with --split test the held-out 05_11-05_20, with --split val the end of 05_01-05_10; "
+                         "only the leader's figures mean anything")
     ap.add_argument("--role", choices=("leader", "follower"), default="leader",
                     help="follower: SPEC §6 'reversed', the follower's frames as a role=follower take; the figures "
                          "named leader_* are then the tracked dancer's (hers), follower_* the partner's (his)")
@@ -456,7 +482,13 @@ def main(argv=None):
 
     takes = tuple(args.takes.split(",")) if args.takes else SALSA_TAKES
     tracked = "follower" if args.role == "follower" else args.tracked
-    segments = list(test_segments(args.data, takes, args.split, tracked))
+    if args.solo:
+        if tracked != "leader" or args.split == "train":
+            ap.error("--solo scores a leader's take on --split test or val")
+        args.only_full = True
+        segments = list(solo_segments(args.solo, args.split, args.data))
+    else:
+        segments = list(test_segments(args.data, takes, args.split, tracked))
     nets = load_nets(args.models, role=args.role, compute=args.compute)
     error = None
     if args.offset_error:
@@ -498,7 +530,9 @@ def main(argv=None):
             results[name] = {**score(runs), **stability(runs), **info}
             if name == "full":
                 results[name].update(device_figures(runs, args.devices))
-            results[name]["without_last_2s"] = score(cut_last(runs))
+            cut = cut_last(runs)
+            if sum(int(r["mask"].sum()) for r in cut):  # (short takes, the solo dancer's val, have none left)
+                results[name]["without_last_2s"] = score(cut)
             tag = next((t for t, n in names.items() if n == name), None)
             if tag in partial and partial[tag]:
                 results[name]["not_ablated"] = partial[tag]  # these dancers use the full model

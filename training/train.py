@@ -30,10 +30,10 @@ from dancing_points_addon.calibration import HEAD_PERCENTILE, TRAIN_HEIGHT
 from dancing_points_addon.skeleton import TRACKED
 from dancing_points_addon.follower import HIP_BINS
 from dancing_points_addon.nets import MODEL_FILES
-from training.dataset import load_clips, swap_roles
+from training.dataset import load_clips, solo_clips, swap_roles
 
-from .data import (anchor_samples, contact_samples, default_pose, device_offset_clips, floor_levels_of,
-                   hip_heading_samples, mapping_samples, time_reverse, tracking_samples)
+from .data import (anchor_samples, body_clips, contact_samples, default_pose, device_offset_clips, floor_levels_of,
+                   hip_heading_samples, mapping_samples, sample_times, time_reverse, tracking_samples)
 from .export import export
 from .model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
@@ -100,6 +100,11 @@ CONFIGS = {
     # is in models/README.md). The ablations get their dancer's settings.
     "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 60,
              "pose_noise": {"leader": 0.3, "follower": 0.0},
+             # the bodies each dancer's tracker learns from (data.body_clips): each its own. Every body
+             # the split allows (--tracker-bodies leader,follower,solo) lost on val: docs/experiments.md
+             "bodies": {"leader": ("leader",), "follower": ("follower",)},
+             # body-shape copies of every clip (bone groups within ±spread) for a tracker of several bodies
+             "shape": {"spread": 0.08, "copies": 1},
              "contacts": {"hidden": 256, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2},
              "anchor": {"hidden": 512, "layers": 3, "epochs": 30, "noise": 0.05, "dropout": 0.2},
              # her hip heading over bins (chosen on val: open-loop 39-41 degrees off her hips against
@@ -107,6 +112,8 @@ CONFIGS = {
              "hip": {"hidden": 512, "layers": 3, "epochs": 60, "noise": 0.05, "dropout": 0.2}},
     "tiny": {"map_hidden": 32, "map_epochs": 1, "track_hidden": 32, "track_epochs": 1,
              "pose_noise": 0.3,
+             "bodies": {"leader": ("leader",), "follower": ("follower",)},
+             "shape": {"spread": 0.08, "copies": 1},
              "contacts": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2},
              "anchor": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2},
              "hip": {"hidden": 32, "layers": 3, "epochs": 1, "noise": 0.05, "dropout": 0.2}},
@@ -152,6 +159,15 @@ def main(argv=None):
                          "device and the couple scaled by up to ±SCALE (a wrong body offset or height), their "
                          "epochs halved (the same steps); default 0.03,0.03 (chosen on val: models/README.md); "
                          "none: not")
+    ap.add_argument("--solo", default="../shared/data/cmu_solo_dance",
+                    help="the solo takes' folder (SPEC §5: 05_01-05_10 trained on, by the trackers only); none: not")
+    ap.add_argument("--tracker-bodies", default=None, metavar="BODIES",
+                    help="comma list of the bodies his tracker learns from: leader, follower (the salsa dancers), "
+                         "solo (SPEC §5: 05_01-05_10); the first gives the start-up pose and so the output "
+                         "skeleton (default: the config's, leader)")
+    ap.add_argument("--body-shape", default=None, metavar="SPREAD,COPIES",
+                    help="a tracker of several bodies also learns from COPIES copies of every clip with each bone "
+                         "group within ±SPREAD of its length (default: the config's, 0.08,1); none: not")
     ap.add_argument("--weights", choices=("int8", "fp32"), default="int8",
                     help="exported weights: int8 (quantised, shipped) or float32")
     args = ap.parse_args(argv)
@@ -169,6 +185,14 @@ def main(argv=None):
     cfg = dict(CONFIGS[args.config])
     if args.pose_noise is not None:
         cfg["pose_noise"] = args.pose_noise
+    if args.tracker_bodies is not None:
+        bodies = tuple(b for b in args.tracker_bodies.split(",") if b)
+        if not bodies or set(bodies) - {"leader", "follower", "solo"}:
+            ap.error(f"--tracker-bodies: leader, follower and/or solo, not {args.tracker_bodies!r}")
+        cfg["bodies"] = {**cfg["bodies"], "leader": bodies}
+    if args.body_shape is not None:
+        spread, copies = (0.0, 0) if args.body_shape == "none" else args.body_shape.split(",")
+        cfg["shape"] = {"spread": float(spread), "copies": int(copies)}
     os.makedirs(args.out, exist_ok=True)
     log = lambda s: print(s, flush=True)  # noqa: E731
     t_all = time.time()
@@ -269,19 +293,39 @@ def main(argv=None):
                   {"outputs": f"the follower's hip heading relative to the leader's root heading: the probabilities "
                               f"of {HIP_BINS} bins, bin k from -pi + 2 pi k / {HIP_BINS}", "bins": HIP_BINS})
 
+    solo = None
+
     def tracker(cls, role, name, out_path, past_input=False, extra=None):
-        """Train a tracker on teacher-forced samples (keys: the ground-truth future)."""
-        x, y, where = tracking_samples(clips, role, past_input=past_input)
-        log(f"{name}: {x.shape} -> {y.shape}")
-        pose_noise = cfg["pose_noise"][role] if isinstance(cfg["pose_noise"], dict) else cfg["pose_noise"]
+        """Train a tracker on teacher-forced samples (keys: the ground-truth future)
+        of the bodies ``cfg["bodies"][role]``, the steps of its own body's."""
+        nonlocal solo
+        name_role, bodies = role, tuple(cfg["bodies"][role])
+        if "solo" in bodies and args.solo != "none" and solo is None:
+            solo = solo_clips(args.solo, args.split)
+        n_own = sum(len(sample_times(c.n_frames)) for c in clips if getattr(c, role) is not None)
+        if bodies == (role,):
+            own, first = clips, clips
+        else:
+            first = body_clips(clips, solo, bodies[:1], lead_head)
+            own = body_clips(clips, solo, bodies, lead_head, np.random.default_rng(args.seed),
+                             cfg["shape"]["spread"], cfg["shape"]["copies"])
+            role = "leader"  # the body clips hold each dancer in the leader's place
+        x, y, where = tracking_samples(own, role, past_input=past_input)
+        epochs = args.track_epochs or cfg["track_epochs"]
+        epochs = max(1, round(epochs * n_own / len(x)))  # the steps of the dancer's own clips
+        log(f"{name}: {x.shape} -> {y.shape} ({', '.join(bodies)}; {epochs} epochs)")
+        pose_noise = cfg["pose_noise"][name_role] if isinstance(cfg["pose_noise"], dict) else cfg["pose_noise"]
         m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=pose_noise)
-        info1 = train_model(m, x, y, args.track_epochs or cfg["track_epochs"], device=device, log=log, seed=args.seed)
+        info1 = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed)
         info = {"stage1": info1, "seconds": info1["seconds"]}
-        meta = {"hidden": cfg["track_hidden"], "role": role, "pose_noise": pose_noise, "train": info, **split_meta,
-                "default_pose": default_pose(x, where, clips)}
+        # the start-up pose (and so the output skeleton): the first body's, unmirrored, unreshaped
+        sel = where[:, 0] < len(first)
+        meta = {"hidden": cfg["track_hidden"], "role": name_role, "pose_noise": pose_noise, "train": info,
+                **split_meta, "bodies": ",".join(bodies), "shape": cfg["shape"] if bodies != (name_role,) else None,
+                "default_pose": default_pose(x[sel], where[sel], own)}
         meta.update(extra or {})
-        export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta, weights=args.weights)
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), meta)
+        export(m, f"tracker_{name_role}", out_path, F.TRACK_IN, meta, weights=args.weights)
         report["models"][name] = info
 
     for role in roles:
