@@ -22,6 +22,14 @@ tracked dancer's final pose, and turns
   (``*hand``) orientation, then also the hand (``*hand`` and ``*fingers``)
   about the wrist point, within :data:`FLEX_LIMIT_DEG` of the forearm.
 
+For ``openxr`` devices the forearm's direction is not measured: the hand's
+bend at the wrist is unknown. It is estimated as the grip's orientation with
+the hand bent as in the dancer's start-up pose (``hand_flex``; the training
+leader's is within 5–7° of his mean bend), and the forearm's end is pointed
+:data:`FOREARM_SHARE` of the way from the network's direction to it, as for
+``joints`` devices (val: headset takes 8.09 → 7.72 cm full body, joint takes
+7.72; jitter 173 → 181 m/s³).
+
 Only rotations change and the children move rigidly with their bones: the
 head point and the wrists stay where the IK put them. A device that is lost
 on a frame (its orientation a guess) turns nothing.
@@ -39,6 +47,7 @@ from .skeleton import JOINT_INDEX
 HEAD_LIMIT_DEG = 90.0
 TWIST_LIMIT_DEG = 110.0  # the salsa dancers' forearm twist: -105..73 degrees (0.1..99.9 percentiles, train frames)
 FLEX_LIMIT_DEG = 85.0
+FOREARM_SHARE = 0.7  # openxr: how far the forearm turns to the grip's estimate (val 0.5 / 0.6 / 0.7 / 0.8 / 1)
 _J = JOINT_INDEX
 _DEVICE_FROM_HEAD = tuple(DEVICE_FROM_HEAD.ravel().tolist())
 
@@ -91,15 +100,30 @@ def limit_rotation(R, limit: float):
     return np.reshape(m, (3, 3)) if array else m
 
 
+def hand_flex(rotations) -> tuple:
+    """Per side (left, right) the hand bone's rotation relative to the forearm
+    end's, ``R_wristᵀ · R_hand`` (3, 3), in a pose's global rotations ``(31, 3, 3)``."""
+    R = np.asarray(rotations, dtype=np.float64)
+    return tuple(R[_J[s + "wrist"]].T @ R[_J[s + "hand"]] for s in "lr")
+
+
 class DeviceFollow:
     """Turn a pose's skull, forearm ends and (``hand_bone="hand"``) hands to
     the devices' orientations (see the module docstring). ``bone_vectors``:
     the skeleton's rest bone vectors ``(31, 3)`` at the pose's scale."""
 
     def __init__(self, bone_vectors, hand_bone: str = "wrist", head_limit=HEAD_LIMIT_DEG,
-                 twist_limit=TWIST_LIMIT_DEG, flex_limit=FLEX_LIMIT_DEG):
+                 twist_limit=TWIST_LIMIT_DEG, flex_limit=FLEX_LIMIT_DEG, hand_flex=None,
+                 forearm_share: float = FOREARM_SHARE):
+        """``hand_flex``: for ``hand_bone="hand"``, per side (left, right) the
+        hand bone's rotation relative to the forearm end's (``*wrist``), each
+        ``(3, 3)``, as in a pose of the dancer (:func:`hand_flex`); None: the
+        forearm is left as the network made it."""
         if hand_bone not in ("wrist", "hand"):
             raise ValueError(f"DeviceFollow: hand_bone must be 'wrist' or 'hand', not {hand_bone!r}")
+        if not 0.0 <= forearm_share <= 1.0:
+            raise ValueError(f"DeviceFollow: forearm_share must lie in [0, 1], not {forearm_share!r}")
+        self.forearm_share = float(forearm_share)
         bv = np.asarray(bone_vectors, dtype=np.float64)
         self.head_vec = bv[_J["head"]]
         self.hand_bone = hand_bone
@@ -113,6 +137,9 @@ class DeviceFollow:
                                "turned": [_J[s + n] for n in ("wrist", "hand", "fingers", "thumb")],
                                "flexed": [_J[s + "hand"], _J[s + "fingers"]],
                                "axis": tuple((e / np.linalg.norm(e)).tolist())})
+        if hand_flex is not None and hand_bone == "hand":
+            for side, flex in zip(self.sides, hand_flex):  # the forearm end from the hand: R_w = R_h · flexᵀ
+                side["unflex"] = tuple(np.asarray(flex, dtype=np.float64).T.ravel().tolist())
 
     def step(self, positions, rotations, head_device=None, hands=(None, None)):
         """``positions (31, 3)``, ``rotations (31, 3, 3)`` (modified in place and
@@ -137,10 +164,17 @@ class DeviceFollow:
     def _hand(self, P, rows, side, target):
         w, rad = side["wrist"], side["radius"]
         e = side["axis"]
+        a = None
         if self.hand_bone == "wrist":  # the device gives the forearm's direction
             a = mat_vec(target, *e)
-            if not self._forearm(P, rows, side, a):  # out of reach: the elbow swung alone
-                self._elbow(P, rows, side, a)
+        elif "unflex" in side and self.forearm_share > 0.0:  # estimated from the grip, part of the way
+            est = mat_vec(mat_mul(target, side["unflex"]), *e)
+            k = self.forearm_share
+            v = [k * x + (1.0 - k) * y for x, y in zip(est, mat_vec(rows[w].tolist(), *e))]
+            n = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+            a = (v[0] / n, v[1] / n, v[2] / n) if n > 1e-9 else None
+        if a is not None and not self._forearm(P, rows, side, a):  # out of reach: the elbow swung alone
+            self._elbow(P, rows, side, a)
         Rw = rows[w].tolist()
         d = mat_vec(Rw, *e)  # the forearm's direction
         bone = Rw if self.hand_bone == "wrist" else rows[side["hand"]].tolist()

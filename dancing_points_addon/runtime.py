@@ -29,7 +29,7 @@ import numpy as np
 from . import features as F
 from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate, check_role, height_from_head
 from .dancer_state import DancerState, advance_together
-from .device_follow import DeviceFollow, limit_rotation
+from .device_follow import DeviceFollow, hand_flex, limit_rotation
 from .duet import Duet, DuetFrame
 from .follower import OUT_SMOOTH, FollowerOptions, HandHold, HipTwist, Placement, Separation, hip_heading_from_probs
 from .formats.devices import openxr_to_points
@@ -276,7 +276,8 @@ class Synthesizer:
         devices = self.calibration.devices if self.calibration is not None else "joints"
         self._follow = None
         if self.options.follow_devices:
-            self._follow = DeviceFollow(self.bone_vectors["leader"], "hand" if devices == "openxr" else "wrist")
+            self._follow = DeviceFollow(self.bone_vectors["leader"], "hand" if devices == "openxr" else "wrist",
+                                        hand_flex=hand_flex(F.pose_rotations(self.default_pose["leader"])))
         self._prev_feet = [None, None]
         self._floor = [None, None]
         self._lockers = None

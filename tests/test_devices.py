@@ -210,6 +210,50 @@ def test_forearm_follow_keeps_the_wrist_point_in_and_out_of_reach(synth, take08)
             assert angle > 10.0  # the elbow swung, the wrist point kept
 
 
+def test_grip_turns_the_forearm_by_the_dancers_hand_bend(synth, take08):
+    """For a headset's grip (the hand bone's orientation, the bend at the
+    wrist unknown), the forearm's end turns towards the grip bent back by
+    ``hand_flex``: all the way with ``forearm_share=1`` (the forearm of the
+    pose the grip came from, when that pose's bend is given), a share of the
+    way by default; the wrist point and every bone length kept; without a bend
+    nothing but the hand turns."""
+    from dancing_points_addon.device_follow import FOREARM_SHARE, DeviceFollow, hand_flex
+    from dancing_points_addon.ik import rotation_between
+    from dancing_points_addon.skeleton import bone_lengths_from_positions
+
+    duet = synth.synthesize(take08[0])
+    P0, R0 = duet.leader_positions[60].copy(), duet.leader_rotations[60].copy()
+    J = JOINT_INDEX
+    bv = synth.bone_vectors["leader"]
+    e = bv[J["lwrist"]] / np.linalg.norm(bv[J["lwrist"]])
+    # the grip of the same arm with its forearm end turned 25 degrees about the elbow-to-wrist normal
+    fore = R0[J["lwrist"]] @ e
+    turn = rotation_between(fore, fore + 0.47 * np.cross(fore, (0.0, 1.0, 0.0)))
+    flex = hand_flex(R0)
+    grip = turn @ R0[J["lwrist"]] @ flex[0]
+    want = turn @ fore
+    wr = P0[J["lwrist"]].copy()
+
+    def angle(R, axis):
+        return np.degrees(np.arccos(np.clip(R[J["lwrist"]] @ e @ axis, -1.0, 1.0)))
+
+    start = angle(R0, want)
+    assert start > 20.0
+    got = {}
+    for share in (1.0, FOREARM_SHARE):
+        P, R = DeviceFollow(bv, "hand", hand_flex=flex, forearm_share=share).step(P0.copy(), R0.copy(), None,
+                                                                                (grip, None))
+        assert np.abs(P[J["lwrist"]] - wr).max() < 1e-9
+        lengths = bone_lengths_from_positions(np.stack([P, P0]))
+        assert np.abs(lengths[0] - lengths[1]).max() < 1e-9
+        got[share] = angle(R, want)
+    print(f"\nforearm off the grip's estimate: {start:.1f} deg before, {got[FOREARM_SHARE]:.1f} at the default "
+          f"share, {got[1.0]:.4f} all the way")
+    assert got[1.0] < 1e-4 and 0.1 * start < got[FOREARM_SHARE] < 0.5 * start
+    P, R = DeviceFollow(bv, "hand").step(P0.copy(), R0.copy(), None, (grip, None))
+    assert abs(angle(R, want) - start) < 1e-6 and np.abs(P[J["lradius"]] - P0[J["lradius"]]).max() < 1e-12
+
+
 def test_hands_back_after_a_loss_blend_in(synth, take08):
     """Hands lost for 0.4 s: when tracking returns, his wrists come back over a
     few frames, never faster than 0.15 m a frame."""
