@@ -17,7 +17,7 @@ from math import atan2, cos, sin, sqrt
 import numpy as np
 
 from .ik import two_bone_ik
-from .representation import dot3, norm
+from .representation import dot3, norm, rot6d_to_matrix
 from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, PARENTS
 
 N = len(PARENTS)
@@ -259,15 +259,7 @@ class OutputSmoothing:
             a, b = self.keep, 1.0 - self.keep
             pp, pr = self._prev
             m = a * pr + b * rotations
-            x, y = m[:, :, 0], m[:, :, 1]
-            x = x / np.sqrt((x * x).sum(-1, keepdims=True))
-            y = y - (x * y).sum(-1, keepdims=True) * x
-            y /= np.sqrt((y * y).sum(-1, keepdims=True))
-            rotations = np.empty_like(m)
-            rotations[:, :, 0], rotations[:, :, 1] = x, y
-            x0, x1, x2, y0, y1, y2 = x[:, 0], x[:, 1], x[:, 2], y[:, 0], y[:, 1], y[:, 2]
-            z = rotations[:, :, 2]  # x × y (np.cross costs more than the rest together)
-            z[:, 0], z[:, 1], z[:, 2] = x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0
+            rotations = rot6d_to_matrix(np.concatenate([m[:, :, 0], m[:, :, 1]], axis=-1))  # columns 0, 1
             bones = (rotations @ self.bone_vectors[:, :, None])[:, :, 0]
             bones[0] = 0.0
             positions = (a * pp[0] + b * positions[0]) + ANCESTORS @ bones
