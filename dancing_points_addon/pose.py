@@ -198,6 +198,27 @@ def clamp_twist(rotations, rest_dir, left, right, limits):
     return rotations
 
 
+def move_keeping_feet(positions, rotations, shift):
+    """The pose ``(31, 3)``, ``(31, 3, 3)`` moved by ``shift`` (3,) with its
+    ankles left where they were: each leg's thigh and shin turned (two-bone IK
+    from the hip) to reach its old ankle, the foot carried by what is left
+    where that is out of reach. New arrays; every bone keeps its length."""
+    old = positions
+    positions = positions + np.asarray(shift, dtype=np.float64)
+    rotations = rotations.copy()
+    for hip, femur, tibia, foot, toes in _LEGS:
+        knee, ankle, r1, r2 = two_bone_ik(positions[hip], positions[femur], positions[tibia], old[tibia])
+        move = ankle - positions[tibia]
+        positions[femur], positions[tibia] = knee, ankle
+        positions[[foot, toes]] += move
+        rotations[femur] = r1 @ rotations[femur]
+        rotations[tibia] = r2 @ rotations[tibia]
+    return positions, rotations
+
+
+_LEGS = [tuple(JOINT_INDEX[s + n] for n in ("hipjoint", "femur", "tibia", "foot", "toes")) for s in "lr"]
+
+
 # A foot point may sink at most this far below its floor level (its height
 # standing, the contact network's ``floor_levels``) before its leg is bent to
 # lift it: the feet never go through the floor.

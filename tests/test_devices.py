@@ -333,3 +333,52 @@ def test_openxr_conversion_keeps_lost_devices_lost():
     q[1, 2] = np.nan
     p, qq = openxr_to_points(pos, q, DeviceOffsets().at(1.7))
     assert np.isnan(p[1, 2]).all() and np.isnan(qq[1, 2]).all() and np.isfinite(p[[0, 2]]).all()
+
+
+def test_moving_a_pose_keeps_its_ankles_and_bones(synth, take08):
+    """``pose.move_keeping_feet``: everything above the legs moves by the shift,
+    the ankles stay (the knees bend for it), the feet are carried only as far
+    as the ankles move; every bone keeps its length."""
+    from dancing_points_addon.pose import move_keeping_feet
+    from dancing_points_addon.skeleton import bone_lengths_from_positions
+
+    duet = synth.synthesize(take08[0])
+    P0, R0 = duet.leader_positions[90].copy(), duet.leader_rotations[90].copy()
+    shift = np.array([0.02, -0.03, 0.01])
+    P, R = move_keeping_feet(P0, R0, shift)
+    assert P is not P0 and np.array_equal(P0, duet.leader_positions[90])  # the input untouched
+    legs = [JOINT_INDEX[s + n] for s in "lr" for n in ("femur", "tibia", "foot", "toes")]
+    rest = [j for j in range(31) if j not in legs]
+    assert np.abs(P[rest] - P0[rest] - shift).max() < 1e-12
+    ankles = [JOINT_INDEX["ltibia"], JOINT_INDEX["rtibia"]]
+    assert np.abs(P[ankles] - P0[ankles]).max() < 1e-9
+    lengths = bone_lengths_from_positions(np.stack([P, P0]))
+    assert np.abs(lengths[0] - lengths[1]).max() < 1e-9
+    # the rotations agree with the positions: each leg bone's rest direction, turned, is its posed direction
+    from dancing_points_addon.skeleton import PARENTS
+
+    bv = synth.bone_vectors["leader"]
+    rest = bv / np.linalg.norm(bv, axis=-1, keepdims=True).clip(1e-12)
+    for pose, rots in ((P0, R0), (P, R)):
+        for j in legs:
+            d = pose[j] - pose[PARENTS[j]]
+            assert np.abs(rots[j] @ rest[j] - d / np.linalg.norm(d)).max() < 1e-6
+
+
+def test_the_tracked_head_point_reaches_its_device(take08, monkeypatch):
+    """The tracked dancer's head point reaches its device: his body moves most
+    of the way there (``runtime.HEAD_REACH``), his legs keeping his ankles;
+    the rigid spine alone (``HEAD_REACH = 0``) left it more than twice as far."""
+    from dancing_points_addon import runtime
+
+    take, shipped = take08[0], runtime.HEAD_REACH
+    off = {}
+    for reach in (shipped, 0.0):
+        monkeypatch.setattr(runtime, "HEAD_REACH", reach)
+        duet = Synthesizer().synthesize(take)
+        tk = resample_take(apply_calibration(take, duet.calibration), F.FPS)
+        n = min(len(tk.positions), len(duet.leader_positions))
+        off[reach] = np.linalg.norm(duet.leader_positions[30:n, TRACKED[0]] - tk.positions[30:n, 0], axis=-1).mean()
+    print(f"\nhead point off its device: {100 * off[0.0]:.2f} cm with the spine alone, "
+          f"{100 * off[shipped]:.2f} as shipped")
+    assert shipped > 0.0 and off[shipped] < 0.012 and off[shipped] < 0.5 * off[0.0]
