@@ -18,6 +18,7 @@ import numpy as np
 
 from .ik import two_bone_ik
 from .representation import dot3, norm, rot6d_to_matrix
+from .scalar_kernels import mat_mul, two_bone_s
 from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, PARENTS
 
 N = len(PARENTS)
@@ -206,13 +207,14 @@ def move_keeping_feet(positions, rotations, shift):
     old = positions
     positions = positions + np.asarray(shift, dtype=np.float64)
     rotations = rotations.copy()
-    for hip, femur, tibia, foot, toes in _LEGS:
-        knee, ankle, r1, r2 = two_bone_ik(positions[hip], positions[femur], positions[tibia], old[tibia])
-        move = ankle - positions[tibia]
+    rows = rotations.reshape(-1, 9)
+    for hip, femur, tibia, foot, toes in _LEGS:  # on Python floats (two_bone_s): a handful of products
+        k, a = positions[femur].tolist(), positions[tibia].tolist()
+        knee, ankle, r1, r2 = two_bone_s(positions[hip].tolist(), k, a, old[tibia].tolist(), k)
         positions[femur], positions[tibia] = knee, ankle
-        positions[[foot, toes]] += move
-        rotations[femur] = r1 @ rotations[femur]
-        rotations[tibia] = r2 @ rotations[tibia]
+        positions[[foot, toes]] += (ankle[0] - a[0], ankle[1] - a[1], ankle[2] - a[2])
+        rows[femur] = mat_mul(r1, rows[femur].tolist())
+        rows[tibia] = mat_mul(r2, rows[tibia].tolist())
     return positions, rotations
 
 
