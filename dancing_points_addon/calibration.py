@@ -73,15 +73,21 @@ class Calibration:
                 "role": self.role}
 
 
+def upright_head(head_y) -> float:
+    """The height of the base of the skull when the dancer stands upright: a
+    high percentile (:data:`HEAD_PERCENTILE`) of the heights ``head_y`` it takes."""
+    return float(np.percentile(head_y, HEAD_PERCENTILE))
+
+
 def height_from_head(head_y) -> float:
     """A standing height (m) from the heights of the base of the skull above the floor."""
-    h = TRAIN_HEIGHT * float(np.percentile(head_y, HEAD_PERCENTILE)) / TRAIN_HEAD_HEIGHT
+    h = TRAIN_HEIGHT * upright_head(head_y) / TRAIN_HEAD_HEIGHT
     return float(np.clip(h, *ESTIMATE_RANGE_M))
 
 
 def floor_from_head(head_y, height: float) -> float:
     """Where the floor lies (its y) under heads ``head_y`` of a dancer ``height`` m tall."""
-    return float(np.percentile(head_y, HEAD_PERCENTILE)) - float(height) * TRAIN_HEAD_HEIGHT / TRAIN_HEIGHT
+    return upright_head(head_y) - float(height) * TRAIN_HEAD_HEIGHT / TRAIN_HEIGHT
 
 
 def _meta_float(meta, key, path):
@@ -250,4 +256,4 @@ def headset_take(take: Take, hand_rotations=None, height=None, offsets: DeviceOf
 
 
 __all__ = ["headset_take", "Calibration", "DEVICE_KINDS", "ROLES", "check_role", "TRAIN_HEIGHT", "TRAIN_HEAD_HEIGHT",
-           "apply_calibration", "calibrate", "fill_lost_start", "floor_from_head", "height_from_head"]
+           "apply_calibration", "calibrate", "fill_lost_start", "floor_from_head", "height_from_head", "upright_head"]

@@ -33,6 +33,15 @@ _PAR = np.maximum(PARENTS, 0)
 _EYE_COL = np.eye(3)[:, :, None]
 
 
+def joints_from_rotations(root, rotations, bone_vectors) -> np.ndarray:
+    """Forward kinematics: joint positions ``(…, 31, 3)`` of global bone
+    rotations ``(…, 31, 3, 3)`` on a skeleton's rest ``bone_vectors (31, 3)``,
+    the root at ``root (…, 3)``."""
+    bones = (rotations @ bone_vectors[:, :, None])[..., 0]
+    bones[..., 0, :] = 0.0
+    return np.asarray(root)[..., None, :] + ANCESTORS @ bones
+
+
 def bone_vectors_from_pose(positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
     """Rest bone vectors ``(31, 3)`` of a skeleton from one consistent posed frame
     (``posed bone vector = R · rest bone vector``)."""
@@ -283,8 +292,6 @@ class OutputSmoothing:
             pp, pr = self._prev
             m = a * pr + b * rotations
             rotations = rot6d_to_matrix(np.concatenate([m[:, :, 0], m[:, :, 1]], axis=-1))  # columns 0, 1
-            bones = (rotations @ self.bone_vectors[:, :, None])[:, :, 0]
-            bones[0] = 0.0
-            positions = (a * pp[0] + b * positions[0]) + ANCESTORS @ bones
+            positions = joints_from_rotations(a * pp[0] + b * positions[0], rotations, self.bone_vectors)
         self._prev = (positions.copy(), rotations.copy())
         return positions, rotations

@@ -206,25 +206,21 @@ SHAPE_GROUPS = {
 }
 
 
-def head_height(clips) -> float:
-    """A body's upright head height over its (unmirrored) clips: the percentile
-    of the head point's height that the runtime's calibration reads."""
-    from dancing_points_addon.calibration import HEAD_PERCENTILE
+def head_height(positions) -> float:
+    """A body's upright head height (``calibration.upright_head``, as the
+    runtime's calibration reads it) over its clips' positions ``(T, 31, 3)``."""
+    from dancing_points_addon.calibration import upright_head
 
-    return float(np.percentile(np.concatenate([c.leader.positions[:, TRACKED[0], 1] for c in clips
-                                               if not c.mirrored] or [c.leader.positions[:, TRACKED[0], 1]
-                                                                       for c in clips]), HEAD_PERCENTILE))
+    return upright_head(np.concatenate([p[:, TRACKED[0], 1] for p in positions]))
 
 
 def reshape_body(positions, rotations, factors) -> np.ndarray:
     """Positions ``(T, 31, 3)`` of the same motion (root path and bone
     rotations) on a skeleton whose bones are ``factors (31,)`` times as long."""
-    from dancing_points_addon.pose import ANCESTORS, bone_vectors_from_pose
+    from dancing_points_addon.pose import bone_vectors_from_pose, joints_from_rotations
 
     bv = bone_vectors_from_pose(positions[0], rotations[0]) * factors[:, None]
-    vec = np.einsum("tnij,nj->tni", rotations, bv)
-    vec[:, 0] = 0.0
-    return positions[:, :1] + np.einsum("nk,tki->tni", ANCESTORS, vec)
+    return joints_from_rotations(positions[:, 0], rotations, bv)
 
 
 def body_clips(duet_clips, solo, bodies, train_head: float, rng=None, shape: float = 0.0, copies: int = 0):
@@ -235,23 +231,22 @@ def body_clips(duet_clips, solo, bodies, train_head: float, rng=None, shape: flo
     a tracker that serves any body. ``copies`` more copies of every clip with
     each bone group (:data:`SHAPE_GROUPS`) ``1 ± shape`` as long (uniform, one
     draw per clip), scaled back to ``train_head``: bodies between and beyond
-    those of the data."""
+    those of the data. Returns the clips, the first body's first, and how many
+    of them are the first body's own (unreshaped)."""
     from dancing_points_addon.skeleton import JOINT_INDEX as J
     from training.dataset import Clip, Dancer
 
-    out = []
+    out, n_first = [], None
     for body in bodies:
         if body == "solo":
-            src = list(solo or [])
+            src = [(c, c.leader) for c in solo or []]
         else:
-            src = [Clip(c.name + body[0], getattr(c, body), None, c.mirrored) for c in duet_clips
-                   if getattr(c, body) is not None]
-        if not src:
-            continue
-        s = train_head / head_height(src)
-        for c in src:
-            d = c.leader
-            out.append(Clip(c.name, Dancer.from_arrays(d.positions * s, d.rotations), None, c.mirrored))
+            src = [(c, getattr(c, body)) for c in duet_clips if getattr(c, body) is not None]
+        if src:
+            s = train_head / head_height(d.positions for _, d in src)
+            out += [Clip(c.name + ("" if body == "solo" else body[0]), Dancer.from_arrays(d.positions * s, d.rotations),
+                         None, c.mirrored) for c, d in src]
+        n_first = len(out) if n_first is None else n_first
     if copies and shape > 0:
         rng = rng if rng is not None else np.random.default_rng(0)
         base = list(out)
@@ -261,6 +256,6 @@ def body_clips(duet_clips, solo, bodies, train_head: float, rng=None, shape: flo
                 for names in SHAPE_GROUPS.values():
                     f[[J[n] for n in names]] = 1.0 + rng.uniform(-shape, shape)
                 pos = reshape_body(c.leader.positions, c.leader.rotations, f)
-                s = train_head / head_height([Clip("", Dancer(pos, None, None, None), None)])
-                out.append(Clip(f"{c.name}s{k}", Dancer.from_arrays(pos * s, c.leader.rotations), None, c.mirrored))
-    return out
+                pos *= train_head / head_height([pos])
+                out.append(Clip(f"{c.name}s{k}", Dancer.from_arrays(pos, c.leader.rotations), None, c.mirrored))
+    return out, n_first

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dancing_points_addon.features import FUTURE
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.representation import contact_labels, root_from_motion
 from dancing_points_addon.skeleton import MIRROR
@@ -121,7 +122,7 @@ def solo_clips(solo_dir, split: str = "train", mirror_aug: bool = True):
         a, b = {"train": (0, m.n_frames), "fit": (0, f), "val": (f, m.n_frames)}[split]
         for phase in range(4):
             pos, rot = m.positions[a + phase:b:4], m.rotations[a + phase:b:4]
-            if len(pos) <= 31:
+            if len(pos) <= FUTURE:  # no sample fits
                 continue
             clips.append(Clip(f"{take}p{phase}", Dancer.from_arrays(pos, rot), None))
             if mirror_aug:
@@ -137,7 +138,7 @@ def _cache_key(data_dir, split, mirror_aug):
     for f in sorted(os.listdir(data_dir)):
         st = os.stat(os.path.join(data_dir, f))
         h.update(f"{f}:{st.st_size}:{int(st.st_mtime)}".encode())
-    h.update(json.dumps([split, mirror_aug, False, CACHE_VERSION]).encode())
+    h.update(json.dumps([split, mirror_aug, False, CACHE_VERSION]).encode())  # (False: the keys of earlier caches)
     return h.hexdigest()[:16]
 
 

@@ -26,14 +26,13 @@ import numpy as np
 import torch
 
 from dancing_points_addon import features as F
-from dancing_points_addon.calibration import HEAD_PERCENTILE, TRAIN_HEIGHT
-from dancing_points_addon.skeleton import TRACKED
+from dancing_points_addon.calibration import TRAIN_HEIGHT
 from dancing_points_addon.follower import HIP_BINS
 from dancing_points_addon.nets import MODEL_FILES
 from training.dataset import load_clips, solo_clips, swap_roles
 
 from .data import (anchor_samples, body_clips, contact_samples, default_pose, device_offset_clips, floor_levels_of,
-                   hip_heading_samples, mapping_samples, sample_times, time_reverse, tracking_samples)
+                   head_height, hip_heading_samples, mapping_samples, sample_times, time_reverse, tracking_samples)
 from .export import export
 from .model import ContactNet, HipHeadingNet, MappingNet, PoseAnchorNet, TrackingNet, VanillaTracker
 
@@ -197,15 +196,13 @@ def main(argv=None):
     log = lambda s: print(s, flush=True)  # noqa: E731
     t_all = time.time()
     clips = load_clips(args.data, args.split, mirror_aug=True, cache_dir=args.cache)
-    lead_head = float(np.percentile(np.concatenate([c.leader.positions[:, TRACKED[0], 1] for c in clips]),
-                                    HEAD_PERCENTILE))
+    lead_head = head_height(c.leader.positions for c in clips)
     if args.tracked == "follower":  # role reversal: her three points in, his motion synthesised
         clips = swap_roles(clips)
     log(f"train clips: {len(clips)}, frames: {sum(c.n_frames for c in clips)}; device {device}")
     # the tracked dancer's upright head height and the standing height it stands for (calibration.py):
     # the training leader's is TRAIN_HEIGHT; another dancer's in proportion to their heads
-    head = float(np.percentile(np.concatenate([c.leader.positions[:, TRACKED[0], 1] for c in clips]),
-                               HEAD_PERCENTILE))
+    head = head_height(c.leader.positions for c in clips)
     tracked_meta = {"tracked_role": args.tracked,
                     "calibration": {"height_m": round(TRAIN_HEIGHT * head / lead_head, 4),
                                     "head_height_m": round(head, 4)}}
@@ -299,33 +296,32 @@ def main(argv=None):
         """Train a tracker on teacher-forced samples (keys: the ground-truth future)
         of the bodies ``cfg["bodies"][role]``, the steps of its own body's."""
         nonlocal solo
-        name_role, bodies = role, tuple(cfg["bodies"][role])
+        bodies = tuple(cfg["bodies"][role])
         if "solo" in bodies and args.solo != "none" and solo is None:
             solo = solo_clips(args.solo, args.split)
         n_own = sum(len(sample_times(c.n_frames)) for c in clips if getattr(c, role) is not None)
         if bodies == (role,):
-            own, first = clips, clips
+            own, n_first, held = clips, len(clips), role
         else:
-            first = body_clips(clips, solo, bodies[:1], lead_head)
-            own = body_clips(clips, solo, bodies, lead_head, np.random.default_rng(args.seed),
-                             cfg["shape"]["spread"], cfg["shape"]["copies"])
-            role = "leader"  # the body clips hold each dancer in the leader's place
-        x, y, where = tracking_samples(own, role, past_input=past_input)
+            own, n_first = body_clips(clips, solo, bodies, lead_head, np.random.default_rng(args.seed),
+                                      cfg["shape"]["spread"], cfg["shape"]["copies"])
+            held = "leader"  # the body clips hold each dancer in the leader's place
+        x, y, where = tracking_samples(own, held, past_input=past_input)
         epochs = args.track_epochs or cfg["track_epochs"]
         epochs = max(1, round(epochs * n_own / len(x)))  # the steps of the dancer's own clips
         log(f"{name}: {x.shape} -> {y.shape} ({', '.join(bodies)}; {epochs} epochs)")
-        pose_noise = cfg["pose_noise"][name_role] if isinstance(cfg["pose_noise"], dict) else cfg["pose_noise"]
+        pose_noise = cfg["pose_noise"][role] if isinstance(cfg["pose_noise"], dict) else cfg["pose_noise"]
         m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=pose_noise)
         info1 = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed)
         info = {"stage1": info1, "seconds": info1["seconds"]}
         # the start-up pose (and so the output skeleton): the first body's, unmirrored, unreshaped
-        sel = where[:, 0] < len(first)
-        meta = {"hidden": cfg["track_hidden"], "role": name_role, "pose_noise": pose_noise, "train": info,
-                **split_meta, "bodies": ",".join(bodies), "shape": cfg["shape"] if bodies != (name_role,) else None,
+        sel = where[:, 0] < n_first
+        meta = {"hidden": cfg["track_hidden"], "role": role, "pose_noise": pose_noise, "train": info,
+                **split_meta, "bodies": ",".join(bodies), "shape": cfg["shape"] if bodies != (role,) else None,
                 "default_pose": default_pose(x[sel], where[sel], own)}
         meta.update(extra or {})
         save_checkpoint(m, os.path.join(args.cache, "checkpoints", f"{name}.pt"), meta)
-        export(m, f"tracker_{name_role}", out_path, F.TRACK_IN, meta, weights=args.weights)
+        export(m, f"tracker_{role}", out_path, F.TRACK_IN, meta, weights=args.weights)
         report["models"][name] = info
 
     for role in roles:
