@@ -348,8 +348,8 @@ def test_moving_a_pose_keeps_its_ankles_and_bones(synth, take08):
     P, R = move_keeping_feet(P0, R0, shift)
     assert P is not P0 and np.array_equal(P0, duet.leader_positions[90])  # the input untouched
     legs = [JOINT_INDEX[s + n] for s in "lr" for n in ("femur", "tibia", "foot", "toes")]
-    rest = [j for j in range(31) if j not in legs]
-    assert np.abs(P[rest] - P0[rest] - shift).max() < 1e-12
+    above = [j for j in range(31) if j not in legs]
+    assert np.abs(P[above] - P0[above] - shift).max() < 1e-12
     ankles = [JOINT_INDEX["ltibia"], JOINT_INDEX["rtibia"]]
     assert np.abs(P[ankles] - P0[ankles]).max() < 1e-9
     lengths = bone_lengths_from_positions(np.stack([P, P0]))
@@ -358,11 +358,11 @@ def test_moving_a_pose_keeps_its_ankles_and_bones(synth, take08):
     from dancing_points_addon.skeleton import PARENTS
 
     bv = synth.bone_vectors["leader"]
-    rest = bv / np.linalg.norm(bv, axis=-1, keepdims=True).clip(1e-12)
+    rest_dir = bv / np.linalg.norm(bv, axis=-1, keepdims=True).clip(1e-12)
     for pose, rots in ((P0, R0), (P, R)):
         for j in legs:
             d = pose[j] - pose[PARENTS[j]]
-            assert np.abs(rots[j] @ rest[j] - d / np.linalg.norm(d)).max() < 1e-6
+            assert np.abs(rots[j] @ rest_dir[j] - d / np.linalg.norm(d)).max() < 1e-6
 
 
 def test_the_tracked_head_point_reaches_its_device(take08, monkeypatch):

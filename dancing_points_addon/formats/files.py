@@ -207,8 +207,8 @@ def write_npz(f, arrays) -> None:
     """``numpy.savez`` of ``arrays`` (a dict) into the open binary file ``f``, the
     same bytes; when the write fails (a full disk, Ctrl-C) the exception
     propagates and nothing more is written to ``f`` afterwards. Not compressed:
-    a duet's float arrays deflate by about 8 %, at 15 times the writing time
-    (0.5 s for a minute of duet)."""
+    a duet's float arrays deflate by about 8 %, at 17 times the writing time
+    (0.51 s against 0.03 s for a minute of duet)."""
     import numpy as np
 
     out = _Disarmable(f)
