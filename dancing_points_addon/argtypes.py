@@ -26,6 +26,28 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM: unwinds like Ctrl-C (the temporary file being written is removed)."""
 
 
+def in_import(frame) -> bool:
+    """Whether a signal handler's ``frame`` interrupted an import. An exception raised
+    there may come back as the module's own ``ImportError`` (onnxruntime's: "not
+    installed") or with a traceback printed by the extension; the handler waits."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def resend_later(signum: int, delay: float = 0.05) -> None:
+    """Send ``signum`` to this process again in ``delay`` seconds: what a handler
+    that found itself inside an import (:func:`in_import`) does instead of raising."""
+    import os
+    import threading
+
+    timer = threading.Timer(delay, os.kill, (os.getpid(), signum))
+    timer.daemon = True
+    timer.start()
+
+
 class UsageError(UserError):
     """A bad command line (reported like bad input: one line, exit 2)."""
 

@@ -26,7 +26,8 @@ import signal
 import threading
 
 from .argtypes import (EXIT_OK, Parser, Terminated, add_calibration_arguments, calibration_options, exit_for,
-                       height_metres, offset_metres, positive_float, positive_int, printable, thread_count)
+                       height_metres, in_import, offset_metres, positive_float, positive_int, printable, resend_later,
+                       thread_count)
 from .errors import InputError
 from .live.cli import parser_live, parser_stream
 
@@ -257,8 +258,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_TERM_RECEIVED = []  # set by the handler: a library may turn the raised Terminated into its own error
+
 
 def _on_sigterm(signum, frame):
+    _TERM_RECEIVED.append(signum)
+    if in_import(frame):  # numpy or onnxruntime loading: raise once it is loaded
+        resend_later(signum)
+        return
     raise Terminated()
 
 
@@ -270,10 +277,15 @@ def main(argv=None) -> int:
             old_term, installed = signal.signal(signal.SIGTERM, _on_sigterm), True
         except (ValueError, OSError):
             pass
+    _TERM_RECEIVED.clear()
     try:
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - one line, never a raw traceback
+        if _TERM_RECEIVED and not isinstance(exc, Terminated):
+            # SIGTERM while a C extension was importing (onnxruntime) comes back as a
+            # bare ImportError ("onnxruntime is not installed"): report what happened
+            exc = Terminated()
         return exit_for(exc, debug=debug)
     finally:
         if installed:

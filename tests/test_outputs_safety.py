@@ -455,6 +455,57 @@ def test_sigterm_from_outside_mid_run(tmp_path):
     assert stderr.splitlines() == ["error: terminated"] and not out.exists() and not hidden(tmp_path)
 
 
+@needs_posix
+def test_sigterm_swallowed_by_a_library_import_still_ends_as_terminated(tmp_path, monkeypatch):
+    """SIGTERM while onnxruntime's C extension imports came back as a bare ImportError,
+    and the command said ``onnxruntime is not installed`` (exit 2). The handler now
+    remembers the signal: ``error: terminated``, exit 143, nothing written."""
+    out = tmp_path / "duet.npz"
+
+    def importing_onnxruntime(*args, **kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1.0)  # the handler runs here and raises Terminated
+        except KeyboardInterrupt:
+            pass  # what the extension's import does with it
+        raise ImportError("")
+
+    monkeypatch.setattr(nets, "OnnxNet", importing_onnxruntime)
+    err = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", err)
+    rc = cli.main(["synthesize", str(SAMPLE), "-o", str(out)])
+    assert rc == 143, err.getvalue()
+    assert err.getvalue().splitlines() == ["error: terminated"]
+    assert not out.exists() and not hidden(tmp_path)
+    assert signal.getsignal(signal.SIGTERM) is not cli._on_sigterm  # the handler is put back
+
+
+@needs_posix
+def test_sigterm_during_an_import_waits_for_the_import(tmp_path, monkeypatch):
+    """A SIGTERM that lands while a module imports is raised only once the import has
+    finished (within a few 50 ms retries), so no extension sees it half-loaded."""
+    out = tmp_path / "duet.npz"
+    (tmp_path / "slow_extension.py").write_text(
+        "import os, signal, time\nos.kill(os.getpid(), signal.SIGTERM)\ntime.sleep(0.3)\nLOADED = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "slow_extension", raising=False)
+    seen = {}
+
+    def loading_networks(*args, **kwargs):
+        import slow_extension
+        seen["loaded"] = slow_extension.LOADED
+        time.sleep(2.0)  # the signal, sent again, is raised here
+        seen["slept"] = True
+
+    monkeypatch.setattr(nets, "OnnxNet", loading_networks)
+    err = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", err)
+    rc = cli.main(["synthesize", str(SAMPLE), "-o", str(out)])
+    assert rc == 143, err.getvalue()
+    assert err.getvalue().splitlines() == ["error: terminated"]
+    assert seen == {"loaded": True} and not out.exists() and not hidden(tmp_path)
+
+
 # --------------------------------------------------------------------------- 11. bounds, names, inputs
 
 def test_jobs_capped_at_the_files_and_warned_above_the_cores(tmp_path, monkeypatch):

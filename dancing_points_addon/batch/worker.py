@@ -24,7 +24,7 @@ import time
 
 from ..errors import error_message
 from . import messages
-from ..argtypes import EXIT_FAILURE, EXIT_TERMINATED, SINGLE_THREAD_ENV
+from ..argtypes import EXIT_FAILURE, EXIT_TERMINATED, SINGLE_THREAD_ENV, in_import, resend_later
 from .options import synthesis_options
 from .plan import remove_temps
 
@@ -93,6 +93,9 @@ class _Terminated(BaseException):
     """SIGTERM in a worker: unwind (removing temporary files) and exit."""
 
 
+_TERM_RECEIVED = []  # set by the handler: a library may turn the raised _Terminated into its own error
+
+
 def worker_main(bpy_converter=None) -> int:
     """A worker process: jobs from stdin, messages to stdout (:mod:`.messages`).
     ``bpy_converter(job, progress) -> {"frames": n}`` converts the jobs that need
@@ -100,6 +103,10 @@ def worker_main(bpy_converter=None) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
 
     def on_term(signum, frame):
+        _TERM_RECEIVED.append(signum)
+        if in_import(frame):  # onnxruntime loading: raise once it is loaded
+            resend_later(signum)
+            return
         raise _Terminated()
 
     with contextlib.suppress(ValueError, AttributeError):
@@ -159,6 +166,8 @@ def _run_job(job, chan, core, bpy_converter):
         raise
     except BaseException as exc:  # noqa: BLE001 - one bad file never stops the worker
         remove_temps(temps.values())
+        if _TERM_RECEIVED:  # SIGTERM inside onnxruntime's import comes back as an ImportError
+            raise _Terminated() from None
         if os.environ.get("DP_DEBUG", "") not in ("", "0"):
             import traceback
             traceback.print_exc()
