@@ -258,36 +258,46 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_TERM_RECEIVED = []  # set by the handler: a library may turn the raised Terminated into its own error
+_SIGNALS = []  # received by the handler: a library may turn what it raised into its own error
 
 
-def _on_sigterm(signum, frame):
-    _TERM_RECEIVED.append(signum)
-    if in_import(frame):  # numpy or onnxruntime loading: raise once it is loaded
+def _on_signal(signum, frame):
+    """SIGTERM raises :class:`Terminated`, Ctrl-C ``KeyboardInterrupt`` -- once
+    any import under way has finished (numpy's or onnxruntime's would turn it into
+    its own ``ImportError``, "onnxruntime is not installed", or print a traceback)."""
+    _SIGNALS.append(signum)
+    if in_import(frame):
         resend_later(signum)
         return
-    raise Terminated()
+    raise Terminated() if signum == getattr(signal, "SIGTERM", None) else KeyboardInterrupt()
+
+
+def _install_handlers() -> dict:
+    """:func:`_on_signal` for SIGTERM and (where Python's own handler has it) SIGINT;
+    the handlers replaced, to put back. Only the main thread may set them."""
+    old = {}
+    if threading.current_thread() is not threading.main_thread():
+        return old
+    for sig in (getattr(signal, "SIGTERM", None), signal.SIGINT):
+        if sig is None or (sig == signal.SIGINT and signal.getsignal(sig) is not signal.default_int_handler):
+            continue
+        with contextlib.suppress(ValueError, OSError):
+            old[sig] = signal.signal(sig, _on_signal)
+    return old
 
 
 def main(argv=None) -> int:
     debug = os.environ.get("DP_DEBUG", "") not in ("", "0")
-    installed, old_term = False, None
-    if threading.current_thread() is threading.main_thread() and hasattr(signal, "SIGTERM"):
-        try:
-            old_term, installed = signal.signal(signal.SIGTERM, _on_sigterm), True
-        except (ValueError, OSError):
-            pass
-    _TERM_RECEIVED.clear()
+    old = _install_handlers()
+    _SIGNALS.clear()
     try:
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - one line, never a raw traceback
-        if _TERM_RECEIVED and not isinstance(exc, Terminated):
-            # SIGTERM while a C extension was importing (onnxruntime) comes back as a
-            # bare ImportError ("onnxruntime is not installed"): report what happened
-            exc = Terminated()
+        if _SIGNALS and not isinstance(exc, KeyboardInterrupt):  # a signal a library made its own error
+            exc = Terminated() if getattr(signal, "SIGTERM", None) in _SIGNALS else KeyboardInterrupt()
         return exit_for(exc, debug=debug)
     finally:
-        if installed:
+        for sig, handler in old.items():
             with contextlib.suppress(ValueError, OSError, TypeError):
-                signal.signal(signal.SIGTERM, old_term if old_term is not None else signal.SIG_DFL)
+                signal.signal(sig, handler if handler is not None else signal.SIG_DFL)

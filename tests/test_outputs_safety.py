@@ -470,6 +470,7 @@ def test_sigterm_swallowed_by_a_library_import_still_ends_as_terminated(tmp_path
             pass  # what the extension's import does with it
         raise ImportError("")
 
+    monkeypatch.setattr(nets, "_CACHE", {})  # (networks loaded by earlier tests)
     monkeypatch.setattr(nets, "OnnxNet", importing_onnxruntime)
     err = io.StringIO()
     monkeypatch.setattr(sys, "stderr", err)
@@ -477,16 +478,18 @@ def test_sigterm_swallowed_by_a_library_import_still_ends_as_terminated(tmp_path
     assert rc == 143, err.getvalue()
     assert err.getvalue().splitlines() == ["error: terminated"]
     assert not out.exists() and not hidden(tmp_path)
-    assert signal.getsignal(signal.SIGTERM) is not cli._on_sigterm  # the handler is put back
+    assert cli._on_signal not in (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))  # put back
 
 
 @needs_posix
-def test_sigterm_during_an_import_waits_for_the_import(tmp_path, monkeypatch):
-    """A SIGTERM that lands while a module imports is raised only once the import has
-    finished (within a few 50 ms retries), so no extension sees it half-loaded."""
+@pytest.mark.parametrize("sig, rc, line", [("SIGTERM", 143, "error: terminated"),
+                                           ("SIGINT", 130, "error: interrupted")])
+def test_a_signal_during_an_import_waits_for_the_import(tmp_path, monkeypatch, sig, rc, line):
+    """SIGTERM or Ctrl-C landing while a module imports is raised only once the import
+    has finished (within a few 50 ms retries), so no extension sees it half-loaded."""
     out = tmp_path / "duet.npz"
     (tmp_path / "slow_extension.py").write_text(
-        "import os, signal, time\nos.kill(os.getpid(), signal.SIGTERM)\ntime.sleep(0.3)\nLOADED = True\n")
+        f"import os, signal, time\nos.kill(os.getpid(), signal.{sig})\ntime.sleep(0.3)\nLOADED = True\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.delitem(sys.modules, "slow_extension", raising=False)
     seen = {}
@@ -497,12 +500,12 @@ def test_sigterm_during_an_import_waits_for_the_import(tmp_path, monkeypatch):
         time.sleep(2.0)  # the signal, sent again, is raised here
         seen["slept"] = True
 
+    monkeypatch.setattr(nets, "_CACHE", {})  # (networks loaded by earlier tests)
     monkeypatch.setattr(nets, "OnnxNet", loading_networks)
     err = io.StringIO()
     monkeypatch.setattr(sys, "stderr", err)
-    rc = cli.main(["synthesize", str(SAMPLE), "-o", str(out)])
-    assert rc == 143, err.getvalue()
-    assert err.getvalue().splitlines() == ["error: terminated"]
+    assert cli.main(["synthesize", str(SAMPLE), "-o", str(out)]) == rc, err.getvalue()
+    assert err.getvalue().splitlines() == [line]
     assert seen == {"loaded": True} and not out.exists() and not hidden(tmp_path)
 
 
