@@ -447,6 +447,41 @@ for line in sys.stdin:
 """
 
 
+# A real worker loop whose converter is sent SIGTERM while it "imports", the way
+# onnxruntime's extension does it: the signal swallowed, an ImportError raised.
+SWALLOWING_WORKER = r"""
+import os, signal, sys, time
+sys.path.insert(0, sys.argv[1])
+from dancing_points_addon.batch import worker
+class Converter:
+    def __call__(self, job, progress):
+        for p in job["temps"].values():
+            with open(p, "w") as f:
+                f.write("partial")
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1.0)
+        except BaseException:
+            pass
+        raise ImportError("")
+worker.CoreConverter = Converter
+sys.exit(worker.worker_main())
+"""
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGTERM") or os.name != "posix", reason="POSIX signals")
+def test_worker_ends_on_a_sigterm_a_library_swallowed(tmp_path):
+    """The worker's SIGTERM turned by an import into an ImportError ended the job as
+    'failed' and the worker went on; now it removes the job's files and exits 143."""
+    temp = tmp_path / ".a.npz.part"
+    job = {"type": "job", "id": 1, "input": str(tmp_path / "a.csv"), "temps": {"npz": str(temp)},
+           "needs_bpy": False, "options": {}}
+    res = subprocess.run([sys.executable, "-c", SWALLOWING_WORKER, str(ROOT)], input=json.dumps(job) + "\n",
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 143, (res.returncode, res.stdout, res.stderr)
+    assert '"error"' not in res.stdout and not temp.exists()
+
+
 def _fake_args(tmp_path, inputs, **kw):
     # (real models: the parent checks them once at start-up, nets.check_models)
     d = dict(inputs=[str(p) for p in inputs], output_dir=str(tmp_path / "out"), format="bvh", jobs=1,
