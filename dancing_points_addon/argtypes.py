@@ -26,26 +26,30 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM: unwinds like Ctrl-C (the temporary file being written is removed)."""
 
 
-def in_import(frame) -> bool:
-    """Whether a signal handler's ``frame`` interrupted an import. An exception raised
-    there may come back as the module's own ``ImportError`` (onnxruntime's: "not
-    installed") or with a traceback printed by the extension; the handler waits."""
-    while frame is not None:
-        if frame.f_code.co_filename.startswith("<frozen importlib"):
-            return True
-        frame = frame.f_back
-    return False
-
-
-def resend_later(signum: int, delay: float = 0.05) -> None:
-    """Send ``signum`` to this process again in ``delay`` seconds: what a handler
-    that found itself inside an import (:func:`in_import`) does instead of raising."""
+def after_imports(exception_for, received: list):
+    """A signal handler that appends each signal to ``received`` and raises
+    ``exception_for(signum)`` -- once any import under way has finished. Raised
+    inside an import (numpy's, onnxruntime's), the exception may come back as the
+    module's own ``ImportError`` (then reported as "onnxruntime is not installed")
+    or with a traceback printed by the extension; so there the handler sends the
+    signal to the process again in 50 ms instead. ``received`` tells a caller that
+    a signal came even when a library swallowed what was raised."""
     import os
     import threading
 
-    timer = threading.Timer(delay, os.kill, (os.getpid(), signum))
-    timer.daemon = True
-    timer.start()
+    def handler(signum, frame):
+        received.append(signum)
+        f = frame
+        while f is not None:
+            if f.f_code.co_filename.startswith("<frozen importlib"):
+                timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
+                timer.daemon = True
+                timer.start()
+                return
+            f = f.f_back
+        raise exception_for(signum)
+
+    return handler
 
 
 class UsageError(UserError):

@@ -26,7 +26,7 @@ import signal
 import threading
 
 from .argtypes import (EXIT_OK, Parser, Terminated, add_calibration_arguments, calibration_options, exit_for,
-                       height_metres, in_import, offset_metres, positive_float, positive_int, printable, resend_later,
+                       after_imports, height_metres, offset_metres, positive_float, positive_int, printable,
                        thread_count)
 from .errors import InputError
 from .live.cli import parser_live, parser_stream
@@ -259,17 +259,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _SIGNALS = []  # received by the handler: a library may turn what it raised into its own error
-
-
-def _on_signal(signum, frame):
-    """SIGTERM raises :class:`Terminated`, Ctrl-C ``KeyboardInterrupt`` -- once
-    any import under way has finished (numpy's or onnxruntime's would turn it into
-    its own ``ImportError``, "onnxruntime is not installed", or print a traceback)."""
-    _SIGNALS.append(signum)
-    if in_import(frame):
-        resend_later(signum)
-        return
-    raise Terminated() if signum == getattr(signal, "SIGTERM", None) else KeyboardInterrupt()
+# SIGTERM raises Terminated, Ctrl-C KeyboardInterrupt, once any import under way has finished
+_on_signal = after_imports(lambda signum: Terminated() if signum == signal.SIGTERM else KeyboardInterrupt(),
+                           _SIGNALS)
 
 
 def _install_handlers() -> dict:
@@ -278,8 +270,8 @@ def _install_handlers() -> dict:
     old = {}
     if threading.current_thread() is not threading.main_thread():
         return old
-    for sig in (getattr(signal, "SIGTERM", None), signal.SIGINT):
-        if sig is None or (sig == signal.SIGINT and signal.getsignal(sig) is not signal.default_int_handler):
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        if sig == signal.SIGINT and signal.getsignal(sig) is not signal.default_int_handler:
             continue
         with contextlib.suppress(ValueError, OSError):
             old[sig] = signal.signal(sig, _on_signal)
@@ -288,14 +280,14 @@ def _install_handlers() -> dict:
 
 def main(argv=None) -> int:
     debug = os.environ.get("DP_DEBUG", "") not in ("", "0")
-    old = _install_handlers()
     _SIGNALS.clear()
+    old = _install_handlers()
     try:
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - one line, never a raw traceback
         if _SIGNALS and not isinstance(exc, KeyboardInterrupt):  # a signal a library made its own error
-            exc = Terminated() if getattr(signal, "SIGTERM", None) in _SIGNALS else KeyboardInterrupt()
+            exc = Terminated() if signal.SIGTERM in _SIGNALS else KeyboardInterrupt()
         return exit_for(exc, debug=debug)
     finally:
         for sig, handler in old.items():

@@ -469,7 +469,7 @@ sys.exit(worker.worker_main())
 """
 
 
-@pytest.mark.skipif(not hasattr(signal, "SIGTERM") or os.name != "posix", reason="POSIX signals")
+@pytest.mark.skipif(os.name != "posix", reason="POSIX signals")
 def test_worker_ends_on_a_sigterm_a_library_swallowed(tmp_path):
     """The worker's SIGTERM turned by an import into an ImportError ended the job as
     'failed' and the worker went on; now it removes the job's files and exits 143."""

@@ -24,7 +24,7 @@ import time
 
 from ..errors import error_message
 from . import messages
-from ..argtypes import EXIT_FAILURE, EXIT_TERMINATED, SINGLE_THREAD_ENV, in_import, resend_later
+from ..argtypes import EXIT_FAILURE, EXIT_TERMINATED, SINGLE_THREAD_ENV, after_imports
 from .options import synthesis_options
 from .plan import remove_temps
 
@@ -102,15 +102,8 @@ def worker_main(bpy_converter=None) -> int:
     Blender (given by the Blender side; without it they fail with one line)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C
 
-    def on_term(signum, frame):
-        _TERM_RECEIVED.append(signum)
-        if in_import(frame):  # onnxruntime loading: raise once it is loaded
-            resend_later(signum)
-            return
-        raise _Terminated()
-
     with contextlib.suppress(ValueError, AttributeError):
-        signal.signal(signal.SIGTERM, on_term)
+        signal.signal(signal.SIGTERM, after_imports(lambda signum: _Terminated(), _TERM_RECEIVED))
     for k in SINGLE_THREAD_ENV:
         os.environ.setdefault(k, "1")
     # Our channel is the original stdout; anything else printed goes to stderr.
