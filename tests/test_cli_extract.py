@@ -7,7 +7,8 @@ import pytest
 from conftest import SALSA, SOLO
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
-from support.helpers import (REJECTIONS, assert_bad_input, bad_number, broken_amc, irregular_take, quat_angle_deg,
+from support.helpers import (REJECTIONS, assert_bad_input, bad_number, bone_missing, broken_amc, frame_truncated,
+                             frames_missing, frames_swapped, non_finite, irregular_take, quat_angle_deg,
                              run_cli, short_bone, unknown_bone, write_case)
 
 
@@ -92,7 +93,8 @@ def test_bad_take_files(tmp_path, kind):
     assert assert_bad_input(run_cli("extract", src, "-o", out), out, old=b"precious\n") == msg
 
 
-@pytest.mark.parametrize("edit", [bad_number, short_bone, unknown_bone])
+@pytest.mark.parametrize("edit", [bad_number, short_bone, unknown_bone, frames_missing, frames_swapped,
+                                  frame_truncated, bone_missing, non_finite])
 def test_broken_amc(tmp_path, edit):
     amc, lineno = broken_amc(tmp_path, edit)
     out = tmp_path / "out.csv"

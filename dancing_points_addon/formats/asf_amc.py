@@ -183,12 +183,15 @@ _FRAME_RE = re.compile(r"^\s*(\d+)\s*$")
 
 
 def parse_amc(path, skeleton: AsfSkeleton):
-    """Parse an AMC file into per-bone DOF arrays ``{name: (T, ndof)}`` (file units)."""
+    """Parse an AMC file into per-bone DOF arrays ``{name: (T, ndof)}`` (file units).
+    Frame numbers must follow each other (a gap or a frame out of order would
+    shift the motion after it in time) and every frame must list each bone once."""
     text = read_text(path)
     lines = text.splitlines()
     rows: dict[str, list[str]] = {}
-    first_line: dict[str, int] = {}
-    n_frames = 0
+    row_lines: dict[str, list[int]] = {}
+    frame_lines: list[int] = []  # the line of each frame's number
+    frame_no = None
     header_done = False
     dof_count = {b.name: len(b.dofs) for b in skeleton.bones}
     for lineno, raw in enumerate(lines, 1):
@@ -200,7 +203,14 @@ def parse_amc(path, skeleton: AsfSkeleton):
                 raise InputError(path, f"header keyword {line.split()[0]!r} after the first frame", lineno)
             continue
         if line[0].isdigit() and _FRAME_RE.match(line):
-            n_frames += 1
+            k = int(line)
+            if frame_no is not None and k != frame_no + 1:
+                raise InputError(path, f"frame {k} follows frame {frame_no} (frames missing or out of order)",
+                                 lineno)
+            if frame_lines:
+                _check_frame_complete(path, rows, frame_no, frame_lines[-1], len(frame_lines))
+            frame_no = k
+            frame_lines.append(lineno)
             header_done = True
             continue
         if not header_done:
@@ -210,17 +220,21 @@ def parse_amc(path, skeleton: AsfSkeleton):
             raise InputError(path, f"unknown bone {name!r} (not in the ASF)", lineno)
         lst = rows.get(name)
         if lst is None:
+            if len(frame_lines) > 1:  # first seen after frame one: missing there
+                raise InputError(path, f"frame {frame_no - len(frame_lines) + 1} has no line for bone {name!r}",
+                                 frame_lines[0])
             lst = rows[name] = []
-            first_line[name] = lineno
-        if len(lst) != n_frames - 1:
-            raise InputError(path, f"bone {name!r} listed twice or missing in a frame", lineno)
+            row_lines[name] = []
+        if len(lst) == len(frame_lines):
+            raise InputError(path, f"bone {name!r} listed twice in frame {frame_no}", lineno)
         lst.append(rest)
+        row_lines[name].append(lineno)
+    n_frames = len(frame_lines)
     if n_frames == 0:
         raise InputError(path, "no frames (not an AMC file?)")
+    _check_frame_complete(path, rows, frame_no, frame_lines[-1], n_frames, last=True)
     out = {}
     for name, lst in rows.items():
-        if len(lst) != n_frames:
-            raise InputError(path, f"bone {name!r} is missing in some frames ({len(lst)} of {n_frames})")
         k = dof_count[name]
         try:
             vals = np.array(" ".join(lst).split(), dtype=np.float64)
@@ -232,9 +246,18 @@ def parse_amc(path, skeleton: AsfSkeleton):
         vals = vals.reshape(n_frames, k)
         if not np.all(np.isfinite(vals)):
             bad = int(np.argwhere(~np.isfinite(vals))[0, 0])
-            raise InputError(path, f"non-finite value for bone {name!r} in frame {bad + 1}")
+            raise InputError(path, f"non-finite value for bone {name!r} in frame {frame_no - n_frames + bad + 1}",
+                             row_lines[name][bad])
         out[name] = vals
     return out, n_frames
+
+
+def _check_frame_complete(path, rows, frame_no, frame_line, n_frames, last=False):
+    """Every bone seen so far has a line in frame ``frame_no`` (the ``n_frames``-th)."""
+    for name, lst in rows.items():
+        if len(lst) < n_frames:
+            hint = " (truncated file?)" if last else ""
+            raise InputError(path, f"frame {frame_no} has no line for bone {name!r}{hint}", frame_line)
 
 
 def _locate_bad_value(path, lines, name):

@@ -212,6 +212,45 @@ def unknown_bone(lines):
     return i + 1
 
 
+def _frame_line(lines, number):
+    return next(k for k, ln in enumerate(lines) if ln.strip() == str(number))
+
+
+def frames_missing(lines):
+    """Frames 100-150 cut out: the motion after them would be shifted in time."""
+    a, b = _frame_line(lines, 100), _frame_line(lines, 151)
+    del lines[a:b]
+    return a + 1
+
+
+def frames_swapped(lines):
+    """Frame 10 numbered 200."""
+    i = _frame_line(lines, 10)
+    lines[i] = "200"
+    return i + 1
+
+
+def frame_truncated(lines):
+    """The file cut off inside its last frame."""
+    last = max(k for k, ln in enumerate(lines) if ln.strip().isdigit())
+    del lines[last + 3:]
+    return last + 1
+
+
+def bone_missing(lines):
+    """Frame 50 without its lfemur line."""
+    i = _frame_line(lines, 50)
+    j = next(k for k in range(i, len(lines)) if lines[k].startswith("lfemur "))
+    del lines[j]
+    return i + 1
+
+
+def non_finite(lines):
+    i = next(k for k, ln in enumerate(lines) if ln.startswith("rtibia ") and k > 400)
+    lines[i] = "rtibia nan"
+    return i + 1
+
+
 # --------------------------------------------------------------------------- motion clips
 
 def cut(motion: Motion, start: int, n: int) -> Motion:
