@@ -87,6 +87,8 @@ def cmd_extract(args) -> int:
     from .formats.take import write_take
 
     check_output_path(args.output)
+    if os.path.splitext(args.output)[1].lower() != ".csv":
+        raise InputError(args.output, "output must end in .csv (a take file, SPEC §3)")
     check_not_input(args, [args.output])
     if args.devices == "openxr":
         from .formats.devices import offsets_for

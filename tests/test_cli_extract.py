@@ -132,6 +132,10 @@ def test_missing_input_and_bad_outputs(tmp_path):
     res = run_cli("extract", amc, "-o", folder)
     assert res.returncode == 2 and len(res.stderr.splitlines()) == 1 and "is a folder" in res.stderr
     assert list(folder.iterdir()) == []
+    duet = tmp_path / "duet.npz"  # a take written under another format's name would replace that file
+    duet.write_bytes(b"a duet")
+    for path, old in ((duet, b"a duet"), (tmp_path / "take", None)):
+        assert_bad_input(run_cli("extract", amc, "-o", path), path, "must end in .csv", old=old)
 
 
 @pytest.mark.parametrize("args,frag", [
