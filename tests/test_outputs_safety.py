@@ -387,7 +387,7 @@ def test_failed_npz_write_in_a_batch_worker(tmp_path):
                          timeout=300, env=env, preexec_fn=file_size_limit(200_000))
     assert res.returncode == 1, (res.stdout, res.stderr)
     r = report_of(out / batch.REPORT_NAME)["files"][0]
-    assert r["status"] == "failed" and "File too large" in r["error"], r
+    assert r["status"] == "failed" and f"{out}: cannot write output (File too large)" in r["error"], r
     logs = [ln.split("worker logs: ", 1)[1] for ln in res.stderr.splitlines() if ln.startswith("worker logs: ")]
     assert logs, res.stderr
     try:

@@ -22,7 +22,7 @@ import signal
 import sys
 import time
 
-from ..errors import error_message
+from ..errors import InputError, error_message
 from . import messages
 from ..argtypes import EXIT_FAILURE, EXIT_TERMINATED, SINGLE_THREAD_ENV, after_imports
 from .options import synthesis_options
@@ -66,7 +66,16 @@ class CoreConverter:
 def write_duet_files(temps: dict, duet) -> None:
     """Write the core formats among ``temps`` (``{kind: path}``): ``npz``,
     ``bvh_leader``, ``bvh_follower``. Plain writes (the paths are temporary; the
-    worker removes them when a write fails)."""
+    worker removes them when a write fails); a failed write is an
+    :class:`InputError` naming the output folder (a full disk, say)."""
+    try:
+        _write_duet_files(temps, duet)
+    except OSError as exc:
+        folder = os.path.dirname(os.path.abspath(next(iter(temps.values()))))
+        raise InputError(folder, f"cannot write output ({exc.strerror or exc})") from None
+
+
+def _write_duet_files(temps: dict, duet) -> None:
     from ..formats.files import write_npz
 
     if "npz" in temps:  # (not duet.save_npz: its own temporary file would escape a killed worker's cleanup)
