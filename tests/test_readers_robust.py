@@ -319,6 +319,8 @@ def _all_lost_lines(n=20):
 
 RULES = [
     ("all lost", lambda: _all_lost_lines(), "no tracked samples"),
+    ("head never tracked", lambda: [row(i / 90.0, head=("", "", "")) for i in range(20)],
+     "the head is lost on every row"),
     ("too short", lambda: good_lines(3), "too short"),
     ("lost at 30 Hz", lambda: [row(0.0, head=("", "", ""), lhand=("", "", ""), rhand=("", "", ""))]
      + good_lines(2)[1:] + [row(0.1 * (k + 2) / 10 + 0.011, head=("", "", ""), lhand=("", "", ""),

@@ -27,7 +27,8 @@ def check_take(take: Take, path=None) -> Take:
       :data:`MAX_DURATION_S` s from first to last row;
     * no position farther than :data:`MAX_DISTANCE_M` from the origin;
     * at least two frames at the networks' 30 Hz (a duration of 1/30 s);
-    * some device tracked on some 30 Hz frame (not every device lost on every row).
+    * some device tracked on some 30 Hz frame (not every device lost on every row),
+      and the head on some row (the duet is placed and turned by it).
 
     Returns ``take``; raises :class:`InputError` naming ``path`` (default
     ``take.source``).
@@ -63,6 +64,9 @@ def check_take(take: Take, path=None) -> Take:
     valid = take.valid
     if not valid.any():
         raise InputError(path, "no tracked samples: every device is lost on every row")
+    if not valid[:, 0].any():
+        raise InputError(path, "the head is lost on every row: a take needs the head device (the duet is "
+                               "placed and turned by it)")
     _, i, a = resample_plan(time, NET_FPS)
     if len(i) < 2:
         raise InputError(path, f"too short: {float(time[-1] - time[0]):.4g} s gives {len(i)} frame at "
