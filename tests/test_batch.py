@@ -105,6 +105,10 @@ def check_run(takes, out, res, fmt):
     assert len(lines) == len(GOOD) + len(BAD) + 1, res.stdout  # one per file + the summary
     assert sum(ln.startswith("ok ") for ln in lines) == len(GOOD)
     assert sum(ln.startswith("FAILED ") for ln in lines) == len(BAD)
+    for ln in lines:  # each failure names its input once, with the reader's line where it has one
+        if ln.startswith("FAILED "):
+            path = ln[len("FAILED "):].lstrip().split(":", 1)[0]
+            assert os.path.isabs(path) and ln.count(path) == 1, ln
     assert lines[-1].startswith(f"{len(GOOD) + len(BAD)} file(s): {len(GOOD)} ok, {len(BAD)} failed")
     assert not leftovers(out), leftovers(out)
     produced = sorted(os.path.relpath(os.path.join(dp, f), out) for dp, _, fs in os.walk(out) for f in fs)

@@ -128,5 +128,7 @@ def result_line(task, out_dir=None) -> str:
     elif task.status == "skipped":
         line = f"skipped {task.input} ({task.error})"
     else:
-        line = f"{task.status.upper():7s} {task.input}: {task.error}"
+        err = str(task.error)  # a reader's message that names the input already: not twice
+        line = f"{task.status.upper():7s} {err}" if err.startswith(f"{task.input}:") else \
+            f"{task.status.upper():7s} {task.input}: {err}"
     return printable(line)  # a file name with a newline or escape codes stays on its line
