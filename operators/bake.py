@@ -14,6 +14,8 @@ armatures and actions ("DP Leader <take> v2", ...); earlier duets of the same
 take are hidden, never modified.
 """
 
+import contextlib
+
 import bpy
 import numpy as np
 
@@ -36,27 +38,75 @@ def make_body(bone_vectors):
     return bm.body_arrays(skinning.make_body(bone_vectors))
 
 
+def _alive(blocks):
+    out = []
+    for x in blocks:
+        try:
+            x.name  # raises ReferenceError when already freed
+            out.append(x)
+        except ReferenceError:
+            pass
+    return out
+
+
 class Created:
-    """Data-blocks made by a bake, removed again if the bake fails."""
+    """What a bake changes, so that a failed bake leaves the scene as it was:
+    the data-blocks it made (removed again), the changes it made to what was
+    there (``on_failure``: undone, last first) and the data-blocks it replaced
+    (``retire``: removed only when the bake succeeds, :meth:`finish`)."""
 
     def __init__(self):
         self.ids = []
+        self._undo = []
+        self._retired = []
 
     def add(self, id_block):
         self.ids.append(id_block)
         return id_block
 
+    def on_failure(self, fn):
+        """Call ``fn()`` if the bake fails (before the new data-blocks go)."""
+        self._undo.append(fn)
+
+    def retire(self, id_block, if_unused=True):
+        """``id_block`` was replaced: removed by :meth:`finish` (``if_unused``:
+        only if nothing uses it then)."""
+        self._retired.append((id_block, if_unused))
+
+    def finish(self):
+        """The bake succeeded: remove the replaced data-blocks."""
+        unused = [x for x, if_unused in self._retired if _alive([x]) and (not if_unused or x.users == 0)]
+        if unused:
+            bpy.data.batch_remove(unused)
+        self.ids, self._undo, self._retired = [], [], []
+
     def remove_all(self):
-        alive = []
-        for x in self.ids:
-            try:
-                x.name  # raises ReferenceError when already freed
-                alive.append(x)
-            except ReferenceError:
-                pass
+        """The bake failed: undo its changes, then remove what it made."""
+        for fn in reversed(self._undo):
+            with contextlib.suppress(ReferenceError):
+                fn()
+        alive = _alive(self.ids)
         if alive:
             bpy.data.batch_remove(alive)
-        self.ids = []
+        self.ids, self._undo, self._retired = [], [], []
+
+
+@contextlib.contextmanager
+def user_mode_kept(context):
+    """Around work that needs object mode: the active object back in the mode
+    (edit, pose, sculpt, ...) it was in before, when it still exists."""
+    view_layer = context.view_layer
+    obj = view_layer.objects.active if view_layer is not None else None
+    mode = obj.mode if obj is not None else 'OBJECT'
+    try:
+        yield
+    finally:
+        if obj is not None and mode != 'OBJECT':
+            with contextlib.suppress(ReferenceError, RuntimeError):
+                if view_layer.objects.active != obj:
+                    view_layer.objects.active = obj
+                if obj.mode != mode:
+                    bpy.ops.object.mode_set(mode=mode)
 
 
 def ensure_object_mode(context):
@@ -184,11 +234,17 @@ def _next_version(take_name):
     return max(versions, default=0) + 1
 
 
-def _hide_previous(take_name, keep):
+def _hide_previous(take_name, keep, created):
     for c in bpy.data.collections:
         if c != keep and is_duet(c) and c.dancing_points.take_name == take_name:
+            created.on_failure(lambda c=c, v=c.hide_viewport, r=c.hide_render: _set_hidden(c, v, r))
             c.hide_viewport = True
             c.hide_render = True
+
+
+def _set_hidden(coll, viewport, render):
+    coll.hide_viewport = viewport
+    coll.hide_render = render
 
 
 def frame_step_for(context, take_name):
@@ -241,10 +297,11 @@ def bake_duet(context, duet, take_name, frame_start=1, frame_step=None):
             body[ROLE_PROP] = role
             rigs[role] = (arm, body)
             consistent[role] = pos
-        _hide_previous(take_name, coll)
+        _hide_previous(take_name, coll, created)
         frames = frame_start + frame_step * np.arange(duet.n_frames, dtype=np.float64)
         stage.ensure_stage(context, consistent["leader"], consistent["follower"], frames, created)
-        return coll, rigs
-    except Exception:
+    except BaseException:
         created.remove_all()
         raise
+    created.finish()
+    return coll, rigs

@@ -141,8 +141,13 @@ def _floor(stage, floor, created):
     else:
         old = obj.data
         obj.data = mesh
-        if old is not None and old.users == 0:
-            bpy.data.meshes.remove(old)
+        if old is not None:
+            if created is None:
+                if old.users == 0:
+                    bpy.data.meshes.remove(old)
+            else:  # kept until the bake has succeeded
+                created.on_failure(lambda: setattr(obj, "data", old))
+                created.retire(old)
     obj.hide_select = True
     return obj
 
@@ -192,8 +197,17 @@ def _key_follow(cam, frames, path, created):
                           frames, quats[:, i])
     cam[FOLLOW_PROP] = action.name
     if old is not None and old != action and _role(old) == "action":
-        bpy.data.actions.remove(old)
+        if created is None:
+            bpy.data.actions.remove(old)
+        else:  # kept until the bake has succeeded
+            created.on_failure(lambda: _restore_follow(cam, old))
+            created.retire(old, if_unused=False)  # (a fake user keeps it)
     return action
+
+
+def _restore_follow(cam, action):
+    cam[FOLLOW_PROP] = action.name
+    apply_camera_mode(cam.users_scene[0] if cam.users_scene else bpy.context.scene)
 
 
 def apply_camera_mode(scene):
@@ -223,6 +237,47 @@ def apply_camera_mode(scene):
     return mode
 
 
+_STAGE_KEYS = ("dp_camera_max_accel", "dp_camera_max_speed", "dp_camera_max_turn_rate", "dp_floor_z")
+
+
+def _plain(value):
+    """An ID property's value as plain Python (an array property read from a
+    block is a view of it, which a later assignment would change)."""
+    for conv in ("to_dict", "to_list"):
+        if hasattr(value, conv):
+            return getattr(value, conv)()
+    return value
+
+
+def _scene_restorer(scene, stage):
+    """A function that puts back what :func:`ensure_stage` sets on the scene, the
+    stage collection and an existing camera rig."""
+    frames, camera = (scene.frame_start, scene.frame_end), scene.camera
+    keys = _STAGE_KEYS + (OBSTACLES_PROP,)
+    kept = {} if stage is None else {k: _plain(stage[k]) for k in keys if k in stage}
+    rig = stage_object(stage, "camera_rig")
+    pose = None
+    if rig is not None:
+        pose = (rig.location.copy(), rig.rotation_mode, rig.rotation_quaternion.copy(),
+                {k: _plain(rig[k]) for k in (ROT_PROP, WIDE_PROP) if k in rig})
+
+    def restore():
+        scene.frame_start, scene.frame_end = frames
+        scene.camera = camera
+        if stage is not None:
+            for k in keys:
+                if k in kept:
+                    stage[k] = kept[k]
+                elif k in stage:
+                    del stage[k]
+        if rig is not None:
+            rig.location, rig.rotation_mode, rig.rotation_quaternion = pose[0], pose[1], pose[2]
+            for k, v in pose[3].items():
+                rig[k] = v
+
+    return restore
+
+
 def ensure_stage(context, leader_positions, follower_positions, sample_frames, created=None):
     """Make or refit the scene's stage for a duet (motion-space positions
     ``(T, 31, 3)`` keyed at scene frames ``sample_frames``); sets the scene's
@@ -237,6 +292,8 @@ def ensure_stage(context, leader_positions, follower_positions, sample_frames, c
         stage = _new(created, bpy.data.collections.new(STAGE_NAME))
         stage[STAGE_PROP] = "stage"
         scene.collection.children.link(stage)
+    if created is not None:  # what a failed bake puts back
+        created.on_failure(_scene_restorer(scene, stage))
     _floor(stage, p["floor"], created)
     rig, cam = _camera(stage, created)
     path = p["path"]
@@ -269,10 +326,8 @@ def ensure_stage(context, leader_positions, follower_positions, sample_frames, c
         scene.world = world
     scene.frame_start = int(p["frames"][0])
     scene.frame_end = int(p["frames"][-1])
-    stage["dp_camera_max_accel"] = path.max_accel
-    stage["dp_camera_max_speed"] = path.max_speed
-    stage["dp_camera_max_turn_rate"] = path.max_turn_rate
-    stage["dp_floor_z"] = p["floor_z"]
+    for k, v in zip(_STAGE_KEYS, (path.max_accel, path.max_speed, path.max_turn_rate, p["floor_z"])):
+        stage[k] = v
     stage[OBSTACLES_PROP] = find_obstacles(scene, leader_positions, follower_positions)
     return stage, p
 

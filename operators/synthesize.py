@@ -99,6 +99,10 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
         return {'CANCELLED'}
 
     def _finish(self, context, coll, duet, t_synth):
+        with bake.user_mode_kept(context):  # the user's object back in its edit or pose mode
+            return self._bake(context, coll, duet, t_synth)
+
+    def _bake(self, context, coll, duet, t_synth):
         t0 = time.perf_counter()
         try:
             duet_coll, _ = bake.bake_duet(context, duet, coll.name, coll.dancing_points.frame_start)

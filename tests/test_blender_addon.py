@@ -526,6 +526,75 @@ def test_rebake_makes_a_new_version(baked):
     assert lead1.animation_data.action == act1  # untouched
     np.testing.assert_array_equal(bsu.fcurve_keys(lead1, 'pose.bones["lfemur"].rotation_quaternion', 0)[1], q1)
     assert duets[0].hide_render and not duets[1].hide_render
+    # the stage refitted, not doubled: one floor mesh, one camera follow action
+    assert [m.get("dp_stage") for m in bpy.data.meshes].count("floor") == 1
+    assert [a.get("dp_stage") for a in bpy.data.actions].count("action") == 1
+
+
+def test_a_failed_rebake_leaves_the_scene_as_it_was(baked, monkeypatch):
+    """A bake that fails late (in the stage's refit) takes back everything:
+    the earlier duets shown as they were, the floor's mesh and the camera's
+    follow action kept, the frame range, camera and rig unchanged, no new
+    data-block left."""
+    scene = baked["scene"]
+    stage = import_from_extension("operators.stage")
+    bake = import_from_extension("operators.bake")
+    kinds = ("collections", "objects", "meshes", "actions", "armatures", "materials", "cameras")
+    before = {k: sorted(getattr(bpy.data, k).keys()) for k in kinds}
+    shown = {c.name: (c.hide_viewport, c.hide_render) for c in bpy.data.collections
+             if c.dancing_points.kind == 'DUET'}
+    assert any(not v[0] for v in shown.values())
+    floor = stage.stage_object(stage.find_stage(scene), "floor")
+    rig = stage.stage_object(stage.find_stage(scene), "camera_rig")
+    mesh, follow, action = floor.data, rig[stage.FOLLOW_PROP], rig.animation_data.action
+    view = (scene.frame_start, scene.frame_end, scene.camera, tuple(rig.location), tuple(rig[stage.WIDE_PROP]))
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("injected failure")
+
+    monkeypatch.setattr(stage, "find_obstacles", fail)
+    short = runtime_duet_slice(baked["duet"], 60)
+    with pytest.raises(RuntimeError, match="injected failure"):
+        bake.bake_duet(bpy.context, short, baked["take"].name, 1)
+    assert {k: sorted(getattr(bpy.data, k).keys()) for k in kinds} == before
+    assert {c.name: (c.hide_viewport, c.hide_render) for c in bpy.data.collections
+            if c.dancing_points.kind == 'DUET'} == shown
+    assert floor.data == mesh and rig[stage.FOLLOW_PROP] == follow and rig.animation_data.action == action
+    assert (scene.frame_start, scene.frame_end, scene.camera, tuple(rig.location),
+            tuple(rig[stage.WIDE_PROP])) == view
+
+
+def test_synthesis_keeps_the_users_edit_mode(baked):
+    """Synthesising while the user edits a mesh leaves that mesh in edit mode
+    (the bake itself needs object mode)."""
+    mesh = bpy.data.meshes.new("User Mesh")
+    mesh.from_pydata([(0, 0, 0), (1, 0, 0), (0, 1, 0)], [], [(0, 1, 2)])
+    obj = bpy.data.objects.new("User Mesh", mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    obj.location = (40.0, 40.0, 0.0)  # out of the dancers' way
+    view_layer = bpy.context.view_layer
+    prev = view_layer.objects.active
+    view_layer.objects.active = obj
+    bpy.ops.object.mode_set(mode='EDIT')
+    try:
+        versions = [c.dancing_points.version for c in bpy.data.collections if c.dancing_points.kind == 'DUET']
+        assert bpy.ops.dancing_points.synthesize(model_dir=MODELS, take=baked["take"].name) == {'FINISHED'}
+        assert len([c for c in bpy.data.collections if c.dancing_points.kind == 'DUET']) == len(versions) + 1
+        assert view_layer.objects.active == obj and obj.mode == 'EDIT'
+    finally:
+        if obj.mode != 'OBJECT':
+            bpy.ops.object.mode_set(mode='OBJECT')
+        view_layer.objects.active = prev
+        bpy.data.objects.remove(obj)
+        bpy.data.meshes.remove(mesh)
+
+
+def runtime_duet_slice(duet, n):
+    """The first ``n`` frames of ``duet`` (another extent: the stage would be refitted)."""
+    runtime = import_from_extension("dancing_points_addon.runtime")
+    keys = ("leader_positions", "leader_rotations", "leader_contacts",
+            "follower_positions", "follower_rotations", "follower_contacts")
+    return runtime.Duet(duet.time[:n], **{k: getattr(duet, k)[:n] for k in keys})
 
 
 def test_bake_time_60s(baked):
