@@ -378,6 +378,15 @@ def test_new_actions_and_the_rigs_own_action_kept(scene):
     path = scene["dir"] / "avatar_map.json"
     assert bpy.ops.dancing_points.retarget_map_save(target=lead.name, filepath=str(path)) == {'FINISHED'}
     assert rt.load_preset(path)["bones"] == m
+    # A missing file is said to be missing (not taken for a convention's name) and changes nothing;
+    # a '//' path of an unsaved .blend is refused, not written to the folder Blender started in.
+    with pytest.raises(RuntimeError, match="bone map file not found"):
+        bpy.ops.dancing_points.retarget_map_load(target=lead.name, filepath=str(scene["dir"] / "nope.json"))
+    assert {i.target: i.source for i in lead.dp_retarget_map if i.source} == m
+    assert not bpy.data.filepath
+    for op in (bpy.ops.dancing_points.retarget_map_save, bpy.ops.dancing_points.retarget_map_load):
+        with pytest.raises(RuntimeError, match="not saved yet"):
+            op(target=lead.name, filepath="//bone_map.json")
 
 
 def _wrist_gaps(W, sources, targets, target_hands):

@@ -44,6 +44,21 @@ def guess_mapping(obj):
     return mapping, "structure"
 
 
+def looks_like_file(preset):
+    """Whether a preset names a file (a JSON or a path), not a built-in convention."""
+    return preset.lower().endswith(".json") or preset.startswith("//") or os.sep in preset or "/" in preset
+
+
+def preset_path(preset):
+    """A preset file's absolute path; a ``//`` path is relative to the saved
+    .blend file (:class:`RetargetError` while it has none: the file would land
+    in whatever folder Blender was started from)."""
+    if preset.startswith("//") and not bpy.data.filepath:
+        raise RetargetError("'{:s}' is relative to the .blend file, which is not saved yet: save it first "
+                            "or choose an absolute path".format(preset))
+    return bpy.path.abspath(preset)
+
+
 def mapping_for(obj, preset="", notes=None):
     """The mapping to use for ``obj``: a preset (file path or built-in name) when
     given, else the one stored on the object, else the automatic guess (stored):
@@ -51,12 +66,14 @@ def mapping_for(obj, preset="", notes=None):
     bones is appended to ``notes``, to check in the bone-map panel)."""
     names = [b.name for b in obj.data.bones]
     if preset:
-        path = bpy.path.abspath(preset)
+        path = preset_path(preset)
         if os.path.isfile(path):
             data = rt.load_preset(path)
             mapping = {k: v for k, v in data["bones"].items() if k in names and v}
             if not mapping:  # a convention table: match names by convention
                 mapping, _ = rt.auto_mapping(names, conventions={data["name"]: data}, convention=data["name"])
+        elif looks_like_file(preset):
+            raise RetargetError("bone map file not found: {:s}".format(path))
         else:
             mapping, _ = rt.auto_mapping(names, convention=preset)
         set_mapping(obj, mapping)

@@ -13,7 +13,7 @@ from ...dancing_points_addon.errors import error_message
 from ..kinds import is_duet
 from .jobs import hide_duet_bodies, retarget_duet_onto, retarget_one, retarget_pair
 from ...dancing_points_addon.retarget.structure import describe, structural_mapping
-from .mapping import CONVENTION_PROP, guess_mapping, mapping_for, set_mapping, stored_mapping
+from .mapping import CONVENTION_PROP, guess_mapping, mapping_for, preset_path, set_mapping, stored_mapping
 from .rig import target_rig
 from .props import settings
 
@@ -167,9 +167,10 @@ class DANCING_POINTS_OT_retarget_map_save(_RetargetOperator, bpy.types.Operator)
 
     def run(self, context):
         obj = _target_from(context, self.target)
-        path = bpy.path.abspath(_preset_file(context, self.filepath))
-        if not path:
+        preset = _preset_file(context, self.filepath)
+        if not preset:
             raise RetargetError("no file name")
+        path = preset_path(preset)
         os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
         rt.save_preset(path, stored_mapping(obj), name=obj.name)
         return "Saved the bone map of '{:s}' to {:s}".format(obj.name, path)
