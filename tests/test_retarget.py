@@ -461,6 +461,29 @@ def test_single_dancer_closes_hands_on_the_partners_rig(scene):
                             "single-dancer retarget")
 
 
+def test_an_avatar_with_an_action_of_its_own_keeps_its_size(scene):
+    """The glTF avatars carry their node's transform (a scale of 0.01) on the
+    Hips pose bone. A copy that already has an action of its own (one key on
+    its hips) is retargeted as the fixture's avatar was, at its own size: it
+    was 100 times too big (its rest pose taken as the reference)."""
+    d = scene["dir"] / "own_action"
+    d.mkdir()
+    arm, body = _import_avatar(ASSETS / AVATARS["leader"], d)
+    try:
+        arm.pose.bones["Hips"].keyframe_insert("location", frame=1)
+        assert arm.animation_data.action is not None
+        assert bpy.ops.dancing_points.retarget(source=scene["dp"]["leader"].name, target=arm.name) == {'FINISHED'}
+        frames = scene["frames"][::10]
+        ref = scene["avatars"]["leader"][0]
+        W = evaluate([arm, ref], frames)
+        head = [pb.name for pb in arm.pose.bones].index("Head")
+        mine, theirs = W[arm.name][:, head, :3, 3], W[ref.name][:, head, :3, 3]
+        assert np.abs(mine[:, 2] - theirs[:, 2]).max() < 2 * CM, (mine[:, 2].max(), theirs[:, 2].max())
+    finally:
+        for o in (body, arm):
+            bpy.data.objects.remove(o)
+
+
 def test_bad_input_reports_one_line(scene):
     dp = scene["dp"]
     with pytest.raises(RuntimeError, match="no object named"):

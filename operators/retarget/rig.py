@@ -36,7 +36,10 @@ def _bone_arrays(obj):
 def reference_basis(obj, store=True):
     """The target's reference pose as ``matrix_basis (B, 4, 4)``: the one stored on
     the object, else its current pose when it has no action (just imported), else
-    its rest pose. Stored on the object (``dp_reference_basis``) the first time."""
+    its rest pose, but a scaled bone keeps its scale and offset (a glTF or FBX
+    importer leaves a node's transform, a scale of 0.01 say, on a pose bone:
+    without it such a rig's rest pose is 100 times its size). Stored on the
+    object (``dp_reference_basis``) the first time."""
     names = [b.name for b in obj.data.bones]
     stored = obj.get(REF_PROP)
     if stored is not None:
@@ -51,6 +54,11 @@ def reference_basis(obj, store=True):
         arr = np.stack([mat(obj.pose.bones[n].matrix_basis) for n in names])
     else:
         arr = np.broadcast_to(np.eye(4), (len(names), 4, 4)).copy()
+        for i, n in enumerate(names):  # an importer's node transform: a scaled bone's scale and offset
+            pb = obj.pose.bones[n]
+            if np.abs(np.array(pb.scale) - 1.0).max() > 1e-6:
+                arr[i, [0, 1, 2], [0, 1, 2]] = tuple(pb.scale)
+                arr[i, :3, 3] = tuple(pb.location)
     if store:
         obj[REF_PROP] = arr.reshape(-1).tolist()
     return arr
