@@ -494,6 +494,17 @@ def test_bad_input_reports_one_line(scene):
     ue = scene["ue"]["leader"]
     with pytest.raises(RuntimeError, match="not a Dancing Points armature"):
         bpy.ops.dancing_points.retarget(source=ue.name, target=scene["avatars"]["leader"][0].name)
+    # a duet's own dancer is no target (its baked dance would be replaced); one rig, one part;
+    # a rig name that does not exist is an error, not a dancer silently left out
+    acts = {o.name: o.animation_data.action for o in (dp["follower"], ue)}
+    with pytest.raises(RuntimeError, match="is a Dancing Points armature"):
+        bpy.ops.dancing_points.retarget(source=dp["leader"].name, target=dp["follower"].name)
+    duet = scene["duet"].name
+    with pytest.raises(RuntimeError, match="picked for both dancers"):
+        bpy.ops.dancing_points.retarget_duet(duet=duet, leader_target=ue.name, follower_target=ue.name)
+    with pytest.raises(RuntimeError, match="no object named 'Her Rig'"):
+        bpy.ops.dancing_points.retarget_duet(duet=duet, leader_target=ue.name, follower_target="Her Rig")
+    assert {o.name: o.animation_data.action for o in (dp["follower"], ue)} == acts
 
 
 def test_panel_draws_and_rig_files_load(scene, tmp_path):

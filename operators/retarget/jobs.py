@@ -31,6 +31,9 @@ class _Job:
             raise RetargetError("the target must be an armature")
         if source == target:
             raise RetargetError("source and target are the same armature")
+        if target.get(ROLE_PROP) in ROLES:  # a duet's own armature: its baked dance would be replaced
+            raise RetargetError("'{:s}' is a Dancing Points armature (a duet's dancer), not a rig to "
+                                "retarget onto".format(target.name))
         self.source, self.target = source, target
         bpy.context.view_layer.update()  # up-to-date matrix_world of objects moved since the last evaluation
         self.frames, self.pos, self.rot, bv, self.src_matrix = source_motion(source)
@@ -163,6 +166,8 @@ def retarget_one(context, source, target, preset="", foot_lock=True, close_hands
 def retarget_pair(context, pairs, preset=("", ""), foot_lock=True, close_hands=True):
     """Retarget ``pairs`` = ((leader DP armature, rig), (follower DP armature, rig))
     jointly (hands closed symmetrically). Returns ``{role: info}``."""
+    if len(pairs) == 2 and pairs[0][1] == pairs[1][1]:
+        raise RetargetError("'{:s}' is picked for both dancers: one rig can dance one part".format(pairs[0][1].name))
     bake.ensure_object_mode(context)
     origin = _duet_origin(*[s for s, _ in pairs]) if len(pairs) == 2 else None
     jobs = [_Job(s, t, p, foot_lock, origin) for (s, t), p in zip(pairs, preset)]

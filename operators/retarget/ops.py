@@ -62,6 +62,14 @@ class DANCING_POINTS_OT_retarget(_RetargetOperator, bpy.types.Operator):
             " (Rigify controls keyed, limbs in FK)" if info.get("controls") else "")
 
 
+def _named(name):
+    """The object named ``name`` (a name given but not found is an error, not a dancer skipped)."""
+    obj = bpy.data.objects.get(name)
+    if obj is None:
+        raise RetargetError("no object named '{:s}'".format(name))
+    return obj
+
+
 class DANCING_POINTS_OT_retarget_duet(_RetargetOperator, bpy.types.Operator):
     """Bake both dancers onto the armatures picked in the panel (hands that hold each other stay together)"""
 
@@ -77,9 +85,9 @@ class DANCING_POINTS_OT_retarget_duet(_RetargetOperator, bpy.types.Operator):
 
     def run(self, context):
         s = settings(context)
-        lt = bpy.data.objects.get(self.leader_target) if self.leader_target else (s.leader_target if s else None)
-        ft = bpy.data.objects.get(self.follower_target) if self.follower_target else \
-            (s.follower_target if s else None)
+        lt, ft = (_named(name) if name else (getattr(s, field) if s else None)
+                  for name, field in ((self.leader_target, "leader_target"),
+                                      (self.follower_target, "follower_target")))
         foot_lock = s.foot_lock if s else True
         close = s.close_hands if s else True
         if self.duet:
