@@ -529,3 +529,27 @@ def test_panel_draws_and_rig_files_load(scene, tmp_path):
     with pytest.raises(import_from_extension("dancing_points_addon.retarget").RetargetError,
                        match="unsupported rig file type"):
         rmod.load_rig_file(str(ASSETS / "VALID_AVATARS_LICENSE.txt"))
+    # A file that fails leaves nothing of itself in the scene, and its line names it:
+    # a .glb cut short, a .glb and a .blend without an armature.
+    err = import_from_extension("dancing_points_addon.retarget").RetargetError
+    cut = tmp_path / "cut.glb"
+    data = (ASSETS / AVATARS["leader"]).read_bytes()
+    cut.write_bytes(data[:len(data) // 3])
+    mesh = bpy.data.meshes.new("Plain Cube")
+    mesh.from_pydata([(0, 0, 0), (1, 0, 0), (0, 1, 0)], [], [(0, 1, 2)])
+    cube = bpy.data.objects.new("Plain Cube", mesh)
+    bpy.context.scene.collection.objects.link(cube)
+    bpy.data.libraries.write(str(tmp_path / "cube.blend"), {cube})
+    for o in bpy.context.scene.objects:
+        o.select_set(o == cube)
+    assert bpy.ops.export_scene.gltf(filepath=str(tmp_path / "cube.glb"), use_selection=True) == {'FINISHED'}
+    bpy.data.objects.remove(cube)
+    bpy.data.meshes.remove(mesh)
+    kinds = ("objects", "collections", "meshes", "armatures", "materials", "images", "actions")
+    for path, why in ((cut, "is the file complete"), (tmp_path / "cube.glb", "has no armature"),
+                      (tmp_path / "cube.blend", "has no armature")):
+        before = {k: sorted(getattr(bpy.data, k).keys()) for k in kinds}
+        with pytest.raises(err, match=why) as info:
+            rmod.load_rig_file(str(path))
+        assert str(path) in str(info.value)
+        assert {k: sorted(getattr(bpy.data, k).keys()) for k in kinds} == before

@@ -129,10 +129,35 @@ def load_rig_file(path, context=None):
     if not os.path.isfile(path):
         raise RetargetError("no such file: {:s}".format(path))
     ext = os.path.splitext(path)[1].lower()
+    if ext not in (".blend", ".glb", ".gltf", ".fbx"):
+        raise RetargetError("unsupported rig file type '{:s}' (.blend, .glb, .gltf, .fbx)".format(ext))
+    before = {kind: set(getattr(bpy.data, kind)) for kind in _IMPORTED}
+    try:
+        arms = _import_rig_file(path, ext, context, gltf_meshopt)
+        if not arms:
+            raise RetargetError("{:s} has no armature".format(path))
+    except BaseException:  # nothing of the file is left in the scene
+        new = [x for kind in _IMPORTED for x in getattr(bpy.data, kind) if x not in before[kind]]
+        if new:
+            bpy.data.batch_remove(new)
+        raise
+    return max(arms, key=lambda o: len(o.data.bones))
+
+
+# what importing a rig file may add to the blend data
+_IMPORTED = ("objects", "collections", "meshes", "armatures", "materials", "images", "textures", "actions",
+             "node_groups", "cameras", "lights")
+
+
+def _import_rig_file(path, ext, context, gltf_meshopt):
+    """Import ``path`` (a supported ``ext``); the armatures it added."""
     before = set(bpy.data.objects)
     if ext == ".blend":
-        with bpy.data.libraries.load(path, link=False) as (src, dst):
-            dst.objects = list(src.objects)
+        try:
+            with bpy.data.libraries.load(path, link=False) as (src, dst):
+                dst.objects = list(src.objects)
+        except (OSError, RuntimeError) as exc:
+            raise _import_error(path, exc) from None
         coll = bpy.data.collections.new(os.path.splitext(os.path.basename(path))[0])
         context.scene.collection.children.link(coll)
         # bone shapes (a Rigify rig's WGT- widgets) come along but are not put in the scene
@@ -144,10 +169,14 @@ def load_rig_file(path, context=None):
     elif ext in (".glb", ".gltf"):
         src = path
         tmpdir = None
-        if ext == ".glb" and gltf_meshopt.needs_decompression(path):
-            tmpdir = tempfile.mkdtemp(prefix="dp_glb_")
-            src = gltf_meshopt.decompress_glb(path, os.path.join(tmpdir, os.path.basename(path)))
         try:
+            try:
+                if ext == ".glb" and gltf_meshopt.needs_decompression(path):
+                    tmpdir = tempfile.mkdtemp(prefix="dp_glb_")
+                    src = gltf_meshopt.decompress_glb(path, os.path.join(tmpdir, os.path.basename(path)))
+            except (ValueError, IndexError, KeyError, OSError) as exc:
+                raise RetargetError("{:s}: cannot decode its compressed meshes ({:s}); is the file "
+                                    "complete?".format(path, str(exc) or type(exc).__name__)) from None
             bpy.ops.import_scene.gltf(filepath=src)
         except RuntimeError as exc:
             raise _import_error(path, exc) from None
@@ -159,9 +188,4 @@ def load_rig_file(path, context=None):
             bpy.ops.import_scene.fbx(filepath=path)
         except RuntimeError as exc:
             raise _import_error(path, exc) from None
-    else:
-        raise RetargetError("unsupported rig file type '{:s}' (.blend, .glb, .gltf, .fbx)".format(ext))
-    arms = [o for o in bpy.data.objects if o not in before and o.type == 'ARMATURE']
-    if not arms:
-        raise RetargetError("{:s} has no armature".format(path))
-    return max(arms, key=lambda o: len(o.data.bones))
+    return [o for o in bpy.data.objects if o not in before and o.type == 'ARMATURE']
