@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import unicodedata
 
 from .errors import UserError, error_message, one_line
@@ -24,6 +25,14 @@ SINGLE_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM: unwinds like Ctrl-C (the temporary file being written is removed)."""
+
+
+# The signals the command line's handler has received (``cli.main``): a library may
+# turn what the handler raised into an error of its own, which is then reported as
+# the signal. A command that ends on a signal by design (``live``: the end of the
+# take) clears it once it has caught the signal, so that what fails after (writing
+# the take) is reported as itself.
+CLI_SIGNALS: list = []
 
 
 def after_imports(exception_for, received: list):
@@ -52,13 +61,23 @@ def after_imports(exception_for, received: list):
     return handler
 
 
+# argparse's own matcher (``^-\d+$|^-\d*\.\d+$``), also for comma lists and exponents
+_NEGATIVE_VALUES = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?(,[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)*$")
+
+
 class UsageError(UserError):
     """A bad command line (reported like bad input: one line, exit 2)."""
 
 
 class Parser(argparse.ArgumentParser):
     """An :class:`argparse.ArgumentParser` whose errors are a :class:`UsageError`
-    (one line) instead of the usage text and ``SystemExit``."""
+    (one line) instead of the usage text and ``SystemExit``, and which takes a
+    comma list that starts with a negative number (``--hand-offset -0.025,0.07,0``)
+    as a value, as argparse does a single negative number."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = _NEGATIVE_VALUES
 
     def error(self, message):  # argparse would print the usage too: keep it one line
         raise UsageError(f"{self.prog}: {message}")

@@ -25,9 +25,9 @@ import os
 import signal
 import threading
 
-from .argtypes import (EXIT_OK, Parser, Terminated, add_calibration_arguments, calibration_options, exit_for,
-                       after_imports, height_metres, offset_metres, positive_float, positive_int, printable,
-                       thread_count)
+from .argtypes import (CLI_SIGNALS, EXIT_OK, Parser, Terminated, add_calibration_arguments, after_imports,
+                       calibration_options, exit_for, height_metres, offset_metres, positive_float, positive_int,
+                       printable, thread_count)
 from .errors import InputError
 from .live.cli import parser_live, parser_stream
 
@@ -99,11 +99,31 @@ def cmd_extract(args) -> int:
                                   offsets=offsets)
     else:
         take = load_input_from_args(args)
+        if args.devices == "joints" and take.meta.get("devices") == "openxr":
+            take = _joints_take(take, args)
+    if args.role:
+        take.meta["role"] = args.role
     write_take(args.output, take)
     dur = float(take.time[-1] - take.time[0])
     rate = (take.n_frames - 1) / dur if dur > 0 else float("nan")
     print(printable(f"wrote {args.output}: {take.n_frames} rows, {dur:.2f} s, {rate:.1f} Hz"))
     return EXIT_OK
+
+
+def _joints_take(take, args):
+    """A headset's take (``devices=openxr``) as the SPEC §2 points it gives
+    (``devices=joints``): the body offsets (the take's, or the options') at the
+    wearer's height (given, the take's, else estimated)."""
+    from .calibration import calibrate
+    from .formats.devices import openxr_to_points
+    from .formats.take import Take
+
+    calib = calibrate(take, height=args.height, devices="openxr", head_offset=args.head_offset,
+                      hand_offset=args.hand_offset)
+    pos, quats = openxr_to_points(take.positions, take.quats, calib.offsets.at(calib.height))
+    meta = {k: v for k, v in take.meta.items() if not k.endswith("_offset_m")}
+    meta["devices"] = "joints"
+    return Take(take.time, pos, quats, meta, take.source)
 
 
 def _parser_extract(sub) -> None:
@@ -114,9 +134,14 @@ def _parser_extract(sub) -> None:
     add_input_arguments(p)
     p.add_argument("-o", "--output", required=True, metavar="TAKE.csv",
                    help="output take file (an existing file is replaced; never the input)")
-    p.add_argument("--devices", choices=("joints", "openxr"), default="joints",
-                   help="joints: the SPEC §2 points (default); openxr: as a headset and two controllers record "
-                        "the dancer (view pose, grip poses), placed with the body offsets below")
+    p.add_argument("--devices", choices=("joints", "openxr"), default=None,
+                   help="joints: the SPEC §2 points (default for a motion file; a headset's take is turned "
+                        "into them with its body offsets); openxr: as a headset and two controllers record "
+                        "the dancer (view pose, grip poses), placed with the body offsets below; default for a "
+                        "take: its own devices")
+    p.add_argument("--role", choices=("leader", "follower"), default=None,
+                   help="whose part the dancer dances (SPEC §3 role, written to the take; default: the "
+                        "input take's, else none: leader)")
     p.add_argument("--head-offset", type=offset_metres, default=None, metavar="X,Y,Z",
                    help="openxr: the base of the skull from the view pose (default: 0,-0.075,0.08 for a 1.70 m "
                         "dancer, scaled)")
@@ -260,7 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_SIGNALS = []  # received by the handler: a library may turn what it raised into its own error
+_SIGNALS = CLI_SIGNALS  # received by the handler: a library may turn what it raised into its own error
 # SIGTERM raises Terminated, Ctrl-C KeyboardInterrupt, once any import under way has finished
 _on_signal = after_imports(lambda signum: Terminated() if signum == signal.SIGTERM else KeyboardInterrupt(),
                            _SIGNALS)

@@ -326,6 +326,28 @@ def test_extract_devices_openxr_and_synthesize_devices_cli(tmp_path):
     assert res.returncode == 2 and "three numbers" in res.stderr and not (tmp_path / "f.npz").exists()
 
 
+
+def test_extract_turns_a_headset_take_back_into_joints_and_sets_the_role(tmp_path):
+    """``extract`` of a headset take keeps it as it is, ``--devices joints`` turns
+    it back into the §2 points (the mocap's, within the file's precision), and
+    ``--role`` writes the role (SPEC §7: it overrides the take's). Negative
+    offsets are accepted as written in the help (``--hand-offset -0.025,0.07,0``)."""
+    xr = tmp_path / "xr.csv"
+    assert run_cli("extract", str(SALSA / "60_10.amc"), "-o", str(xr), "--devices", "openxr").returncode == 0
+    same = tmp_path / "same.csv"
+    res = run_cli("extract", str(xr), "-o", str(same), "--role", "follower")
+    assert res.returncode == 0, res.stderr
+    t = read_take(same)
+    assert t.meta["devices"] == "openxr" and t.meta["role"] == "follower"
+    back = tmp_path / "back.csv"
+    res = run_cli("extract", str(xr), "-o", str(back), "--devices", "joints", "--hand-offset", "-0.025,0.07,0")
+    assert res.returncode == 0, res.stderr
+    t = read_take(back)
+    joints = load_input(str(SALSA / "60_10.amc"))
+    assert t.meta["devices"] == "joints" and "role" not in t.meta
+    assert np.abs(t.positions - joints.positions).max() < 1e-4
+
+
 def test_openxr_conversion_keeps_lost_devices_lost():
     pos = np.zeros((3, 3, 3))
     q = np.tile([1.0, 0.0, 0.0, 0.0], (3, 3, 1))
