@@ -309,6 +309,18 @@ def test_late_samples_and_nothing_recorded(synth):
     assert s.counters.late == 1 and s.counters.used == 0 and s.rows.n == 1
 
 
+def test_a_take_shorter_than_two_frames_makes_no_duet(synth):
+    """Two samples 10 ms apart are one 30 Hz frame: no duet (``live`` then says the
+    recording is too short), as ``synthesize`` refuses such a take."""
+    s = LiveSession(LiveOptions(source="osc", models=MODELS, height=1.7), Synthesizer(SynthesisOptions(models=MODELS),
+                                                                                      nets=synth.nets))
+    pose = {d: (np.array([0.0, 1.5 if d == 0 else 1.0, 0.2 * d]), FACING_Z) for d in range(3)}
+    for t in (1.0, 1.01):
+        s.feed(Sample(t, pose, datagrams=1))
+    result = s.finish()
+    assert result.take.n_frames == 2 and result.duet is None
+
+
 def test_xr_conversion_round_trip(take):
     hx = headset_take(take)
     loc, rot = motion_to_xr(hx.positions[10], hx.quats[10])
@@ -568,6 +580,44 @@ def test_stream_and_live_processes(tmp_path, fmt, drop, extra):
     worst = max(float(np.max(np.abs(a[k] - b[k]))) for k in SPEC_KEYS)
     print(f"live duet vs synthesize of its take: {a['leader_positions'].shape[0]} frames, max difference {worst:g}")
     assert worst <= TOL
+
+
+def test_a_signal_ending_an_empty_live_take_says_why(tmp_path):
+    """SIGTERM is how a take ends: what fails after it (here: nothing was
+    recorded) is reported as itself, not as 'terminated'."""
+    port_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    port_sock.bind(("127.0.0.1", 0))
+    port = port_sock.getsockname()[1]
+    port_sock.close()
+    out = tmp_path / "empty.npz"
+    live = subprocess.Popen([sys.executable, "-m", "dancing_points_addon", "live", "--bind", "127.0.0.1",
+                             "--port", str(port), "--format", "osc", "-o", str(out)], cwd=ROOT, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = ""
+        while "listening" not in line:
+            line = live.stdout.readline()
+            assert line or live.poll() is None, live.stderr.read()
+        live.send_signal(signal.SIGTERM)
+        _, stderr = live.communicate(timeout=60)
+    finally:
+        if live.poll() is None:
+            live.kill()
+    assert live.returncode == 2 and stderr.splitlines() == [stderr.strip()], stderr
+    assert "nothing recorded" in stderr
+    assert not out.exists() and not out.with_suffix(".csv").exists()
+
+
+def test_stream_that_sends_nothing_fails_and_its_rate_is_bounded():
+    """Every send refused (a broadcast address without permission) is an error,
+    not 'sent 0 packets' and success; a rate beyond any tracker's is one line."""
+    res = subprocess.run([sys.executable, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--host",
+                          "255.255.255.255", "--duration", "0.3"], cwd=ROOT, env=_env(), capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 2 and "nothing could be sent" in res.stderr, (res.stdout, res.stderr)
+    res = subprocess.run([sys.executable, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--rate", "1e9"],
+                         cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "at most 1000" in res.stderr, res.stderr
 
 
 def test_live_duration_ends_the_take(tmp_path):

@@ -7,12 +7,13 @@ SPEC §4; what ``synthesize OUT.csv`` gives) together: both or neither.
 """
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 import time
 
-from ..argtypes import (EXIT_OK, add_calibration_arguments, calibration_options, height_metres, port_number,
-                        positive_float, printable, share, thread_count)
+from ..argtypes import (CLI_SIGNALS, EXIT_OK, add_calibration_arguments, calibration_options, height_metres,
+                        port_number, positive_float, printable, share, thread_count)
 from ..errors import InputError, UserError
 from . import OSC_PORT, VMC_PORT
 
@@ -25,6 +26,16 @@ def _default_port(fmt: str) -> int:
 
 
 # --------------------------------------------------------------------------- stream
+
+MAX_STREAM_RATE_HZ = 1000.0  # beyond any tracker's rate (72-120 Hz); a sample is a packet or four
+
+
+def stream_rate(text: str) -> float:
+    v = positive_float(text)
+    if v > MAX_STREAM_RATE_HZ:
+        raise argparse.ArgumentTypeError(f"at most {MAX_STREAM_RATE_HZ:g} samples a second, got {text!r}")
+    return v
+
 
 def cmd_stream(args) -> int:
     from ..formats.inputs import load_input
@@ -42,6 +53,9 @@ def cmd_stream(args) -> int:
     if res["errors"]:
         line += f"; {res['errors']} sends refused by the system"
     print(printable(line), flush=True)
+    if res["sent"] == 0 and res["errors"]:
+        raise UserError(f"nothing could be sent to {args.host}:{port} (every send was refused: is the address "
+                        f"right and reachable?)")
     return EXIT_OK
 
 
@@ -56,8 +70,9 @@ def parser_stream(sub) -> None:
                    help=f"UDP port to send to (default {VMC_PORT} for vmc, {OSC_PORT} for osc)")
     p.add_argument("--host", default="127.0.0.1", metavar="ADDR", help="where to send (default 127.0.0.1)")
     p.add_argument("--format", choices=("vmc", "osc"), default="vmc", help="the layout (default vmc)")
-    p.add_argument("--rate", type=positive_float, default=None, metavar="HZ",
-                   help="send the take resampled to HZ samples a second (default: its own rows and times)")
+    p.add_argument("--rate", type=stream_rate, default=None, metavar="HZ",
+                   help=f"send the take resampled to HZ samples a second, at most {MAX_STREAM_RATE_HZ:g} "
+                        f"(default: its own rows and times)")
     p.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C or --duration")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--drop", type=share, default=0.0, metavar="P",
@@ -142,7 +157,7 @@ def cmd_live(args) -> int:
                     next_log = now + STATUS_LOG_EVERY_S
                     print(printable(session.status_line(now)), flush=True)
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the end of the take
-            pass
+            CLI_SIGNALS.clear()  # handled: what fails from here on is reported as itself
         if tty:
             print()
     finally:

@@ -434,7 +434,7 @@ class LiveSession:
         from ..duet import Duet
 
         f = self._frames
-        if T < 1 or len(f["lp"]) < T:
+        if T < 2 or len(f["lp"]) < T:  # (a take of one 30 Hz frame is one synthesize refuses)
             return None
         c = self.calibration
         stack = lambda key: np.array(f[key][:T])  # noqa: E731
