@@ -210,7 +210,8 @@ def _parser_synthesize(sub) -> None:
                    help="folder with the ONNX models (default: $DP_MODEL_DIR, else the bundled models/)")
     p.add_argument("--no-foot-lock", action="store_true", help="turn contact-based foot locking off")
     p.add_argument("--no-hand-ik", action="store_true",
-                   help="leave the leader's head and wrists where the network puts them (no IK onto the input)")
+                   help="leave the tracked dancer's head and wrists where the network puts them (no IK onto the "
+                        "input)")
     add_calibration_arguments(p)
     p.set_defaults(func=cmd_synthesize)
 

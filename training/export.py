@@ -196,7 +196,8 @@ def main(argv=None):
                                        "tracker_follower",
                     help="checkpoints to export (e.g. vanilla_leader,pastinput_follower for the ablations)")
     ap.add_argument("--weights", choices=WEIGHTS, default="int8",
-                    help="int8: quantised weights, int8 compute (shipped); fp32: the exact float graph")
+                    help="int8: weights stored as 8-bit blocks (shipped; the runtime multiplies them in float32); "
+                         "fp32: the exact float graph")
     ap.add_argument("--default-pose-from", default=None, metavar="DATA",
                     help="recompute the trackers' start-up pose from this data's unmirrored train split")
     args = ap.parse_args(argv)
