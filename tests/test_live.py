@@ -200,6 +200,21 @@ def test_assembler_groups_messages_and_counts_every_datagram(take):
     assert np.allclose([s.clock for s in got], [1.0, 1.1, 1.2])  # (float32 on the wire)
 
 
+def test_a_sender_that_starts_again_is_heard(take):
+    """A sender that starts again numbers its samples from 0: they are used, not
+    dropped as late until they pass the old numbers (23 minutes at 72 Hz for
+    100,000); so is a sender far behind a stray number. A sample a few numbers
+    back is still late."""
+    got, c = [], Counters()
+    asm = SampleAssembler(P.OscDecoder(), got.append, c, window=0.002)
+    pos, quats = take.positions[0], take.quats[0]
+    numbers = [*range(0, 500), 498, 0, 1, 2, 3, 5_000, 4, 5]
+    for i, n in enumerate(numbers):
+        asm.datagram(P.sample_datagrams("osc", n, 0.01 * i, pos, quats)[0], 0.01 * i)
+    assert [s.frame for s in got] == [*range(0, 500), 0, 1, 2, 3, 5_000, 4, 5]
+    assert c.snapshot()["late"] == 1  # 498 after 499
+
+
 # --------------------------------------------------------------------------- resampling
 
 def test_causal_resampler_makes_resample_takes_frames(take):

@@ -27,7 +27,10 @@ from .protocol import osc_messages
 GROUP_WINDOW_S = 0.002
 MAX_DATAGRAM = 65536
 RECEIVE_BUFFER = 1 << 20
-FRAME_RESTART = 100_000  # a sample number this far back is a restarted sender, not a late sample
+# A sample number this far back, or back at the start (0 to FRAME_FIRST), is a sender
+# that started again (or a stray number far ahead before it), not a late sample: a
+# sample arrives late by a few numbers (UDP reordering), 300 is 2.5 s at 120 Hz.
+FRAME_RESTART, FRAME_FIRST = 300, 2
 CLOCK_RESTART_S = 5.0  # the same for the sender's clock (/VMC/Ext/T)
 
 
@@ -139,7 +142,7 @@ class SampleAssembler:
         late = False
         if s.frame is not None:
             last = self.last_frame
-            if last is not None and last - FRAME_RESTART < s.frame <= last:
+            if last is not None and last - FRAME_RESTART < s.frame <= last and s.frame > FRAME_FIRST:
                 late = True
             else:
                 if last is not None and s.frame > last + 1:
