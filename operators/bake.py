@@ -38,7 +38,8 @@ def make_body(bone_vectors):
     return bm.body_arrays(skinning.make_body(bone_vectors))
 
 
-def _alive(blocks):
+def alive(blocks):
+    """Those of ``blocks`` (data-blocks) not yet freed."""
     out = []
     for x in blocks:
         try:
@@ -75,7 +76,7 @@ class Created:
 
     def finish(self):
         """The bake succeeded: remove the replaced data-blocks."""
-        unused = [x for x, if_unused in self._retired if _alive([x]) and (not if_unused or x.users == 0)]
+        unused = [x for x, if_unused in self._retired if alive([x]) and (not if_unused or x.users == 0)]
         if unused:
             bpy.data.batch_remove(unused)
         self.ids, self._undo, self._retired = [], [], []
@@ -85,9 +86,9 @@ class Created:
         for fn in reversed(self._undo):
             with contextlib.suppress(ReferenceError):
                 fn()
-        alive = _alive(self.ids)
-        if alive:
-            bpy.data.batch_remove(alive)
+        made = alive(self.ids)
+        if made:
+            bpy.data.batch_remove(made)
         self.ids, self._undo, self._retired = [], [], []
 
 

@@ -86,16 +86,14 @@ def build_amc_ghost(context, coll, path, input_fps, frame_start, frame_step=1.0)
 
 
 def remove_ghost(objs):
+    from . import bake
+
     ids = []
-    for obj in objs:
-        try:
-            obj.name  # raises ReferenceError when already removed
-            ids.append(obj)
-            if obj.data is not None:
-                ids.append(obj.data)
-            if obj.animation_data and obj.animation_data.action:
-                ids.append(obj.animation_data.action)
-        except ReferenceError:
-            continue
+    for obj in bake.alive(objs):
+        ids.append(obj)
+        if obj.data is not None:
+            ids.append(obj.data)
+        if obj.animation_data and obj.animation_data.action:
+            ids.append(obj.animation_data.action)
     if ids:
         bpy.data.batch_remove(list(dict.fromkeys(ids)))

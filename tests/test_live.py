@@ -47,6 +47,25 @@ def _env():
     return {**os.environ, "PYTHONPATH": str(ROOT), "DP_MODEL_DIR": MODELS}
 
 
+def _start_live(*args):
+    """``live`` on a free port of 127.0.0.1 (``args`` its other options), once it
+    listens: ``(process, port)``."""
+    port_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    port_sock.bind(("127.0.0.1", 0))
+    port = port_sock.getsockname()[1]
+    port_sock.close()
+    live = subprocess.Popen([sys.executable, "-m", "dancing_points_addon", "live", "--bind", "127.0.0.1",
+                             "--port", str(port), *map(str, args)], cwd=ROOT, env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    line = ""
+    while "listening" not in line and time.time() < deadline:
+        line = live.stdout.readline()
+        if not line and live.poll() is not None:
+            raise AssertionError(live.stderr.read())
+    return live, port
+
+
 @pytest.fixture(scope="module")
 def take():
     return read_take(SAMPLE)
@@ -542,20 +561,9 @@ def test_stream_and_live_processes(tmp_path, fmt, drop, extra):
     processes on 127.0.0.1: every packet sent is received and accounted for,
     the deliberately dropped ones are the numbered samples found lost, and the
     duet ``live`` wrote is ``synthesize``'s of the take it wrote."""
-    port_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    port_sock.bind(("127.0.0.1", 0))
-    port = port_sock.getsockname()[1]
-    port_sock.close()
     out = tmp_path / "live.npz"
-    live = subprocess.Popen([sys.executable, "-m", "dancing_points_addon", "live", "--bind", "127.0.0.1",
-                             "--port", str(port), "--format", fmt, "-o", str(out)], cwd=ROOT, env=_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    live, port = _start_live("--format", fmt, "-o", out)
     try:
-        deadline = time.time() + 120
-        line = ""
-        while "listening" not in line and time.time() < deadline:
-            line = live.stdout.readline()
-            assert line or live.poll() is None, live.stderr.read()
         sender = subprocess.run([sys.executable, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--port",
                                  str(port), "--format", fmt, "--rate", "72", "--duration", "10", "--drop", str(drop),
                                  *extra], cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=60)
@@ -600,19 +608,9 @@ def test_stream_and_live_processes(tmp_path, fmt, drop, extra):
 def test_a_signal_ending_an_empty_live_take_says_why(tmp_path):
     """SIGTERM is how a take ends: what fails after it (here: nothing was
     recorded) is reported as itself, not as 'terminated'."""
-    port_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    port_sock.bind(("127.0.0.1", 0))
-    port = port_sock.getsockname()[1]
-    port_sock.close()
     out = tmp_path / "empty.npz"
-    live = subprocess.Popen([sys.executable, "-m", "dancing_points_addon", "live", "--bind", "127.0.0.1",
-                             "--port", str(port), "--format", "osc", "-o", str(out)], cwd=ROOT, env=_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    live, _ = _start_live("--format", "osc", "-o", out)
     try:
-        line = ""
-        while "listening" not in line:
-            line = live.stdout.readline()
-            assert line or live.poll() is None, live.stderr.read()
         live.send_signal(signal.SIGTERM)
         _, stderr = live.communicate(timeout=60)
     finally:
@@ -636,20 +634,9 @@ def test_stream_that_sends_nothing_fails_and_its_rate_is_bounded():
 
 
 def test_live_duration_ends_the_take(tmp_path):
-    port_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    port_sock.bind(("127.0.0.1", 0))
-    port = port_sock.getsockname()[1]
-    port_sock.close()
     out = tmp_path / "d.npz"
-    live = subprocess.Popen([sys.executable, "-m", "dancing_points_addon", "live", "--bind", "127.0.0.1",
-                             "--port", str(port), "--format", "osc", "--duration", "2", "--height", "1.7",
-                             "-o", str(out)], cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+    live, port = _start_live("--format", "osc", "--duration", "2", "--height", "1.7", "-o", out)
     try:
-        line = ""
-        while "listening" not in line:
-            line = live.stdout.readline()
-            assert line or live.poll() is None, live.stderr.read()
         sender = subprocess.run([sys.executable, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--port",
                                  str(port), "--format", "osc", "--loop", "--duration", "4"], cwd=ROOT, env=_env(),
                                 capture_output=True, text=True, timeout=60)
