@@ -61,8 +61,8 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
     from ..nets import MODEL_ENV
 
     p.add_argument("inputs", nargs="+", metavar="IN",
-                   help="take files (.csv), BVH (.bvh) or CMU AMC (.amc) files, or folders searched "
-                        "recursively for them")
+                   help="take files (.csv), BVH (.bvh), CMU AMC (.amc) or FBX (.fbx, read by Blender's bpy) "
+                        "files, or folders searched recursively for them")
     p.add_argument("-o", "--output-dir", required=True, metavar="OUT_DIR",
                    help="folder for the outputs (created if missing)")
     p.add_argument("--format", choices=FORMATS, default=default_format,
