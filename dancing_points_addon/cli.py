@@ -286,10 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_SIGNALS = CLI_SIGNALS  # received by the handler: a library may turn what it raised into its own error
 # SIGTERM raises Terminated, Ctrl-C KeyboardInterrupt, once any import under way has finished
 _on_signal = after_imports(lambda signum: Terminated() if signum == signal.SIGTERM else KeyboardInterrupt(),
-                           _SIGNALS)
+                           CLI_SIGNALS)
 
 
 def _install_handlers() -> dict:
@@ -308,14 +307,14 @@ def _install_handlers() -> dict:
 
 def main(argv=None) -> int:
     debug = os.environ.get("DP_DEBUG", "") not in ("", "0")
-    _SIGNALS.clear()
+    CLI_SIGNALS.clear()
     old = _install_handlers()
     try:
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
     except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 - one line, never a raw traceback
-        if _SIGNALS and not isinstance(exc, KeyboardInterrupt):  # a signal a library made its own error
-            exc = Terminated() if signal.SIGTERM in _SIGNALS else KeyboardInterrupt()
+        if CLI_SIGNALS and not isinstance(exc, KeyboardInterrupt):  # a signal a library made its own error
+            exc = Terminated() if signal.SIGTERM in CLI_SIGNALS else KeyboardInterrupt()
         return exit_for(exc, debug=debug)
     finally:
         for sig, handler in old.items():

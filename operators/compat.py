@@ -37,6 +37,15 @@ def new_action_for(id_block, name):
     return action, slot
 
 
+def plain_value(value):
+    """An ID property's value as plain Python (an array or group property read
+    from a data-block is a view of it, which a later assignment would change)."""
+    for conv in ("to_dict", "to_list"):
+        if hasattr(value, conv):
+            return getattr(value, conv)()
+    return value
+
+
 def assigned_action(id_block):
     """``(action, slot)`` animating ``id_block`` or ``(None, None)``."""
     ad = id_block.animation_data

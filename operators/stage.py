@@ -199,15 +199,9 @@ def _key_follow(cam, frames, path, created):
     if old is not None and old != action and _role(old) == "action":
         if created is None:
             bpy.data.actions.remove(old)
-        else:  # kept until the bake has succeeded
-            created.on_failure(lambda: _restore_follow(cam, old))
+        else:  # kept until the bake has succeeded (a failed one points the rig back at it)
             created.retire(old, if_unused=False)  # (a fake user keeps it)
     return action
-
-
-def _restore_follow(cam, action):
-    cam[FOLLOW_PROP] = action.name
-    apply_camera_mode(cam.users_scene[0] if cam.users_scene else bpy.context.scene)
 
 
 def apply_camera_mode(scene):
@@ -240,40 +234,43 @@ def apply_camera_mode(scene):
 _STAGE_KEYS = ("dp_camera_max_accel", "dp_camera_max_speed", "dp_camera_max_turn_rate", "dp_floor_z")
 
 
-def _plain(value):
-    """An ID property's value as plain Python (an array property read from a
-    block is a view of it, which a later assignment would change)."""
-    for conv in ("to_dict", "to_list"):
-        if hasattr(value, conv):
-            return getattr(value, conv)()
-    return value
+_RIG_KEYS = (ROT_PROP, WIDE_PROP, FOLLOW_PROP)
+
+
+def _props(block, keys):
+    """The values of ``keys`` that ``block`` has, as plain Python."""
+    return {} if block is None else {k: compat.plain_value(block[k]) for k in keys if k in block}
+
+
+def _put_back(block, kept, keys):
+    """``block``'s ``keys`` as :func:`_props` found them (those it did not have, removed)."""
+    for k in keys:
+        if k in kept:
+            block[k] = kept[k]
+        elif k in block:
+            del block[k]
 
 
 def _scene_restorer(scene, stage):
     """A function that puts back what :func:`ensure_stage` sets on the scene, the
-    stage collection and an existing camera rig."""
+    stage collection and an existing camera rig (its follow action too)."""
     frames, camera = (scene.frame_start, scene.frame_end), scene.camera
     keys = _STAGE_KEYS + (OBSTACLES_PROP,)
-    kept = {} if stage is None else {k: _plain(stage[k]) for k in keys if k in stage}
+    kept = _props(stage, keys)
     rig = stage_object(stage, "camera_rig")
-    pose = None
     if rig is not None:
-        pose = (rig.location.copy(), rig.rotation_mode, rig.rotation_quaternion.copy(),
-                {k: _plain(rig[k]) for k in (ROT_PROP, WIDE_PROP) if k in rig})
+        pose = (rig.location.copy(), rig.rotation_mode, rig.rotation_quaternion.copy())
+        rig_kept = _props(rig, _RIG_KEYS)
 
     def restore():
         scene.frame_start, scene.frame_end = frames
         scene.camera = camera
         if stage is not None:
-            for k in keys:
-                if k in kept:
-                    stage[k] = kept[k]
-                elif k in stage:
-                    del stage[k]
+            _put_back(stage, kept, keys)
         if rig is not None:
-            rig.location, rig.rotation_mode, rig.rotation_quaternion = pose[0], pose[1], pose[2]
-            for k, v in pose[3].items():
-                rig[k] = v
+            rig.location, rig.rotation_mode, rig.rotation_quaternion = pose
+            _put_back(rig, rig_kept, _RIG_KEYS)
+            apply_camera_mode(scene)  # the rig on its old follow action
 
     return restore
 

@@ -113,7 +113,7 @@ def stored_samples(coll, positions, quats, tol=1e-4):
     T = len(positions)
     if raw is None or len(raw) != T * 21:
         return None
-    a = np.array(raw.to_list() if hasattr(raw, "to_list") else raw, dtype=np.float64).reshape(T, 21)
+    a = np.array(compat.plain_value(raw), dtype=np.float64).reshape(T, 21)
     pos, q = a[:, :9].reshape(T, 3, 3), a[:, 9:].reshape(T, 3, 4)
     lost = ~np.isfinite(positions).all(-1)
     if not np.array_equal(lost, ~np.isfinite(pos).all(-1)):

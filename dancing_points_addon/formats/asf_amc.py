@@ -191,7 +191,8 @@ def parse_amc(path, skeleton: AsfSkeleton):
     rows: dict[str, list[str]] = {}
     row_lines: dict[str, list[int]] = {}
     frame_lines: list[int] = []  # the line of each frame's number
-    frame_no = None
+    frame_no = first_no = None
+    in_frame = 0  # bone lines in the current frame (each bone once: fewer means one is missing)
     header_done = False
     dof_count = {b.name: len(b.dofs) for b in skeleton.bones}
     for lineno, raw in enumerate(lines, 1):
@@ -207,9 +208,10 @@ def parse_amc(path, skeleton: AsfSkeleton):
             if frame_no is not None and k != frame_no + 1:
                 raise InputError(path, f"frame {k} follows frame {frame_no} (frames missing or out of order)",
                                  lineno)
-            if frame_lines:
+            if frame_lines and in_frame < len(rows):
                 _check_frame_complete(path, rows, frame_no, frame_lines[-1], len(frame_lines))
-            frame_no = k
+            frame_no, in_frame = k, 0
+            first_no = k if first_no is None else first_no
             frame_lines.append(lineno)
             header_done = True
             continue
@@ -221,14 +223,14 @@ def parse_amc(path, skeleton: AsfSkeleton):
         lst = rows.get(name)
         if lst is None:
             if len(frame_lines) > 1:  # first seen after frame one: missing there
-                raise InputError(path, f"frame {frame_no - len(frame_lines) + 1} has no line for bone {name!r}",
-                                 frame_lines[0])
+                raise InputError(path, f"frame {first_no} has no line for bone {name!r}", frame_lines[0])
             lst = rows[name] = []
             row_lines[name] = []
         if len(lst) == len(frame_lines):
             raise InputError(path, f"bone {name!r} listed twice in frame {frame_no}", lineno)
         lst.append(rest)
         row_lines[name].append(lineno)
+        in_frame += 1
     n_frames = len(frame_lines)
     if n_frames == 0:
         raise InputError(path, "no frames (not an AMC file?)")
@@ -246,7 +248,7 @@ def parse_amc(path, skeleton: AsfSkeleton):
         vals = vals.reshape(n_frames, k)
         if not np.all(np.isfinite(vals)):
             bad = int(np.argwhere(~np.isfinite(vals))[0, 0])
-            raise InputError(path, f"non-finite value for bone {name!r} in frame {frame_no - n_frames + bad + 1}",
+            raise InputError(path, f"non-finite value for bone {name!r} in frame {first_no + bad}",
                              row_lines[name][bad])
         out[name] = vals
     return out, n_frames
