@@ -8,7 +8,7 @@ from conftest import SALSA, SOLO
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
 from support.helpers import (REJECTIONS, assert_bad_input, bad_number, bone_missing, broken_amc, frame_truncated,
-                             frames_missing, frames_swapped, non_finite, irregular_take, quat_angle_deg,
+                             frames_missing, frames_swapped, non_finite, root_far, irregular_take, quat_angle_deg,
                              run_cli, short_bone, unknown_bone, write_case)
 
 
@@ -94,12 +94,27 @@ def test_bad_take_files(tmp_path, kind):
 
 
 @pytest.mark.parametrize("edit", [bad_number, short_bone, unknown_bone, frames_missing, frames_swapped,
-                                  frame_truncated, bone_missing, non_finite])
+                                  frame_truncated, bone_missing, non_finite, root_far])
 def test_broken_amc(tmp_path, edit):
     amc, lineno = broken_amc(tmp_path, edit)
     out = tmp_path / "out.csv"
     out.write_bytes(b"keep me")
     assert_bad_input(run_cli("extract", amc, "-o", out), out, f"{amc}:{lineno}: ", old=b"keep me")
+
+
+def test_bvh_frame_out_of_range_names_its_row(tmp_path, salsa_motion):
+    """A BVH frame whose root is far out is refused at that frame's row."""
+    from dancing_points_addon.formats.bvh import write_bvh
+
+    bvh = tmp_path / "far.bvh"
+    write_bvh(bvh, salsa_motion)
+    lines = bvh.read_text().splitlines()
+    row = next(k for k, ln in enumerate(lines) if ln.lower().startswith("frame time")) + 1 + 40
+    vals = lines[row].split()
+    lines[row] = " ".join(["1e30"] + vals[1:])
+    bvh.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out.csv"
+    assert_bad_input(run_cli("extract", bvh, "-o", out), out, f"{bvh}:{row + 1}: ", "frame 41 is out of range")
 
 
 def test_garbage_inputs(tmp_path):

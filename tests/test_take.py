@@ -172,6 +172,12 @@ def test_other_read_errors(tmp_path):
     with pytest.raises(InputError) as ei:
         read_take(tmp_path / "h.csv")
     assert ei.value.line == 1 and "height_m" in str(ei.value)
+    # a body offset is checked where it is written, with its line (not later, without one)
+    (tmp_path / "o.csv").write_text("# devices=openxr\n# head_offset_m=0,-0.09\n" + ",".join(COLUMNS) + "\n"
+                                    + "\n".join(good_lines(3)))
+    with pytest.raises(InputError, match="head_offset_m must be three numbers") as ei:
+        read_take(tmp_path / "o.csv")
+    assert ei.value.line == 2 and "o.csv:2:" in str(ei.value)
     (tmp_path / "b.csv").write_bytes(b"\x00\x01\x02binary")
     with pytest.raises(InputError):
         read_take(tmp_path / "b.csv")

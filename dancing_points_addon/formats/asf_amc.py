@@ -254,6 +254,19 @@ def parse_amc(path, skeleton: AsfSkeleton):
     return out, n_frames
 
 
+def frame_line(path, index: int) -> int | None:
+    """The line of the frame number of the ``index``-th frame (from 0) of an
+    AMC file, for a message about that frame found after parsing; None if
+    there is no such frame."""
+    k = -1
+    for lineno, raw in enumerate(read_text(path).splitlines(), 1):
+        if _FRAME_RE.match(raw):
+            k += 1
+            if k == index:
+                return lineno
+    return None
+
+
 def _check_frame_complete(path, rows, frame_no, frame_line, n_frames, last=False):
     """Every bone seen so far has a line in frame ``frame_no`` (the ``n_frames``-th)."""
     for name, lst in rows.items():

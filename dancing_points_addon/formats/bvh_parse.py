@@ -77,6 +77,21 @@ def _read_lines(path):
     return read_text(path).replace("\r\n", "\n").replace("\r", "\n").split("\n")
 
 
+def frame_line(path, index: int) -> int | None:
+    """The line of the ``index``-th frame row (from 0) of a BVH file (the
+    non-blank lines after ``Frame Time:``), for a message about that frame
+    found after parsing; None if there is no such row."""
+    k, rows = -1, False
+    for lineno, line in enumerate(_read_lines(path), 1):
+        if not rows:
+            rows = re.match(r"^\s*frame\s*time\s*:", line, re.IGNORECASE) is not None
+        elif line.strip():
+            k += 1
+            if k == index:
+                return lineno
+    return None
+
+
 def _snap_fps(frame_time: float) -> float:
     fps = 1.0 / frame_time if frame_time > 1e-300 else float("inf")
     if not np.isfinite(fps) or fps > 1e12:

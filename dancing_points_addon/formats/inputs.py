@@ -148,11 +148,11 @@ def _load(path, asf=None, input_fps=None, height=None, want_hands=False):
                     regular_file(os.fspath(asf), "an ASF file", missing="no such ASF file")
                 from .asf_amc import load_amc
                 motion = load_amc(path, asf, fps=input_fps)
-                take = _checked_motion_take(path, take_from_motion(motion))
+                take = _checked_motion_take(path, take_from_motion(motion), ext)
                 hands = motion.rotations[:, list(HAND_BONES)] if want_hands else None
             else:
                 take, hands = _take_from_bvh(path, input_fps, want_hands)
-                take = _checked_motion_take(path, take)
+                take = _checked_motion_take(path, take, ext)
     except InputError:
         raise
     except MemoryError:
@@ -166,17 +166,26 @@ def _load(path, asf=None, input_fps=None, height=None, want_hands=False):
     return check_take(take, path), hands
 
 
-def _checked_motion_take(path, take: Take) -> Take:
-    """A take computed from a full-body motion (BVH, AMC): every value finite
-    and every point within :data:`MAX_DISTANCE_M` (what :func:`read_take`
-    accepts, so ``extract`` never writes a take it would reject)."""
+def _checked_motion_take(path, take: Take, ext=".fbx") -> Take:
+    """A take computed from a full-body motion (BVH, AMC, FBX): every value
+    finite and every point within :data:`MAX_DISTANCE_M` (what :func:`read_take`
+    accepts, so ``extract`` never writes a take it would reject). The message
+    names the frame's line in a BVH or AMC file (one frame a row: the take is
+    at the file's own rate)."""
     with np.errstate(all="ignore"):
         bad = ~(np.isfinite(take.positions).all(-1) & np.isfinite(take.quats).all(-1))
         bad |= np.linalg.norm(take.positions, axis=-1) > MAX_DISTANCE_M
     if bad.any():
         r, d = (int(x) for x in np.argwhere(bad)[0])
+        line = None
+        if ext == ".amc":
+            from .asf_amc import frame_line
+            line = frame_line(path, r)
+        elif ext == ".bvh":
+            from .bvh_parse import frame_line
+            line = frame_line(path, r)
         raise InputError(path, f"{DEVICES[d]} point of frame {r + 1} is out of range (more than "
-                               f"{MAX_DISTANCE_M:g} m from the origin, or not a finite number)")
+                               f"{MAX_DISTANCE_M:g} m from the origin, or not a finite number)", line)
     return take
 
 

@@ -245,6 +245,14 @@ def bone_missing(lines):
     return i + 1
 
 
+def root_far(lines):
+    """Frame 60's root moved 1e30 units away: its line is the frame's number."""
+    i = _frame_line(lines, 60)
+    j = next(k for k in range(i, len(lines)) if lines[k].startswith("root "))
+    lines[j] = "root 1e30 " + " ".join(lines[j].split()[2:])
+    return i + 1
+
+
 def non_finite(lines):
     i = next(k for k, ln in enumerate(lines) if ln.startswith("rtibia ") and k > 400)
     lines[i] = "rtibia nan"
