@@ -310,6 +310,10 @@ def test_never_overwrites_without_overwrite(takes, tmp_path):
     assert res.returncode == 0, res.stderr
     assert read_report(out)["files"][0]["status"] == "ok" and target.stat().st_mtime > 1e9
     assert not leftovers(out)
+    mtime = target.stat().st_mtime
+    res = run_batch(src, out, "npz", "--resume", "--overwrite", jobs=1)  # skip or replace: refused, not guessed
+    assert res.returncode == 2 and "not allowed with argument" in res.stderr, res.stdout + res.stderr
+    assert target.stat().st_mtime == mtime
 
 
 def test_report_option_and_name_clashes(takes, tmp_path):

@@ -80,10 +80,12 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
                         "version of this project and models on every worker (README: Batch on a cluster)")
     p.add_argument("--render", action="store_true",
                    help="also render a Workbench preview video NAME.mp4 (needs Blender's bpy)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace existing outputs (never an input), and a --report file that is not a report")
-    p.add_argument("--resume", action="store_true",
-                   help="skip the takes whose outputs already exist (e.g. after an interrupted run)")
+    existing = p.add_mutually_exclusive_group()  # replace or skip: one answer to an existing output
+    existing.add_argument("--overwrite", action="store_true",
+                          help="replace existing outputs (never an input), and a --report file that is not a "
+                               "report")
+    existing.add_argument("--resume", action="store_true",
+                          help="skip the takes whose outputs already exist (e.g. after an interrupted run)")
     p.add_argument("--report", default=None, metavar="PATH",
                    help=f"JSON report (default: OUT_DIR/{REPORT_NAME}); replaces an earlier report, never "
                         f"an input; another existing file only with --overwrite")
