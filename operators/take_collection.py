@@ -139,6 +139,21 @@ def remove_collection(coll):
     bpy.data.batch_remove(list(dict.fromkeys(ids)))
 
 
+def _last_key(objs):
+    """The scene frame of the last location or rotation key of the device
+    empties (None: none is keyed, e.g. driven by constraints)."""
+    last = None
+    for obj in objs.values():
+        action, slot = compat.assigned_action(obj)
+        for path, n in (("location", 3), ("rotation_quaternion", 4)):
+            for i in range(n):
+                fc = compat.find_fcurve(action, slot, path, i)
+                if fc is not None and len(fc.keyframe_points):
+                    end = float(fc.range()[1])
+                    last = end if last is None else max(last, end)
+    return last
+
+
 def _device_world(obj, context, frames):
     """Location (T, 3), quaternion (T, 4) and tracked flag (T,) of a device empty
     at ``frames``, Blender space."""
@@ -192,6 +207,12 @@ def take_from_collection(context, coll):
     if T < 2:
         raise UserError("take '{:s}' has {:d} frame(s); a take needs at least 2".format(coll.name, T))
     frames = take_frames(coll)
+    last = _last_key(objs)
+    if last is not None and frames[-1] > last + 1e-3:
+        keyed = int(np.sum(frames <= last + 1e-3))
+        raise UserError("take '{:s}' has {:d} frames (its Frames setting), but its empties are keyed only up to "
+                        "scene frame {:g}, {:d} of them: set Frames to {:d} or key the rest".format(
+                            coll.name, T, last, keyed, keyed))
     pos = np.empty((T, 3, 3))
     quats = np.empty((T, 3, 4))
     for d, dev in enumerate(DEVICES):

@@ -796,6 +796,22 @@ def test_edited_take_reads_its_keyframes(files):
     assert take_collection.stored_samples(coll, moved, take.quats) is None
 
 
+def test_a_take_longer_than_its_keys_is_refused(files):
+    """A take's Frames setting past its keyframes (a script or the property
+    UI set it) is refused in one line, not synthesised as held poses."""
+    take_collection = import_from_extension("operators.take_collection")
+    bsu.fresh_scene()
+    coll = _import(files["csv"])
+    T = coll.dancing_points.n_frames
+    coll.dancing_points.n_frames = 100_000
+    state = bsu.scene_state()
+    with pytest.raises(RuntimeError, match=f"has 100000 frames .* set Frames to {T} or key the rest"):
+        bpy.ops.dancing_points.synthesize(model_dir=MODELS)
+    _assert_unchanged(state)
+    coll.dancing_points.n_frames = T - 10  # fewer frames than keys: a shortened take, read as such
+    assert take_collection.take_from_collection(bpy.context, coll).n_frames == T - 10
+
+
 def test_headset_take_import_calibration_on_the_take(files, tmp_path):
     """A headset's take (devices=openxr) imports as such; the Devices option
     overrides the file; synthesising stores the estimated height and the floor

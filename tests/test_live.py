@@ -650,3 +650,109 @@ def test_live_duration_ends_the_take(tmp_path):
     assert float(tk.meta["height_m"]) == 1.7
     assert 1.9 <= tk.time[-1] <= 2.2
     assert np.load(out)["leader_positions"].shape[0] == int(np.floor(tk.time[-1] * 30 + 1e-6)) + 1
+
+
+# --------------------------------------------------------------------------- the stream's metadata
+
+def test_metadata_survives_a_lossy_link(tmp_path):
+    """``stream --drop 0.9`` of a ``devices=joints`` take over VMC (whose
+    default is ``openxr``): with seed 0 every sample that once carried the
+    metadata (the first, then one a second) is among those left out before the
+    calibration. The recording and its summary still say ``devices joints``,
+    with no warning, and the duet is ``synthesize``'s of the recorded take."""
+    out = tmp_path / "lossy.npz"
+    live, port = _start_live("--format", "vmc", "-o", out)
+    try:
+        sender = subprocess.run([sys.executable, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--port",
+                                 str(port), "--format", "vmc", "--rate", "72", "--duration", "5", "--drop", "0.9",
+                                 "--seed", "0"], cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=60)
+        assert sender.returncode == 0, sender.stderr
+        time.sleep(1.0)
+        live.send_signal(signal.SIGINT)
+        stdout, stderr = live.communicate(timeout=120)
+    finally:
+        if live.poll() is None:
+            live.kill()
+    assert live.returncode == 0, stderr
+    print(sender.stdout, stdout)
+    assert "devices joints" in stdout and "warning" not in stdout + stderr
+    tk = read_take(out.with_suffix(".csv"))
+    assert tk.meta["devices"] == "joints" and tk.meta["role"] == "leader"
+    off = tmp_path / "offline.npz"
+    r = subprocess.run([sys.executable, "-m", "dancing_points_addon", "synthesize", str(out.with_suffix(".csv")),
+                        "-o", str(off)], cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    a, b = np.load(out), np.load(off)
+    assert a["leader_positions"].shape == b["leader_positions"].shape
+    assert max(float(np.max(np.abs(a[k] - b[k]))) for k in SPEC_KEYS) <= TOL
+
+
+def test_announced_metadata_lost_on_the_way_is_waited_for(take, synth):
+    """A headset's take (``devices=openxr``; OSC's default is ``joints``) sent
+    as loose OSC messages, each sample announcing its metadata's keys: the
+    first sample's ``devices`` message is lost, its height and floor come. The
+    loop waits for ``devices`` (it comes again at 1.5 s) instead of starting at
+    once under the default; then the take says ``openxr`` and the duet is
+    synthesize's of it."""
+    hx = headset_take(take, height=1.8)
+    t, pos, quats = stream_rows(hx, 72.0)
+    n = 72 * 3
+    meta = {"devices": "openxr", "height_m": "1.8000", "floor_y": "0.0000", "role": "leader"}
+    s = LiveSession(LiveOptions(source="osc", models=MODELS), Synthesizer(SynthesisOptions(models=MODELS),
+                                                                          nets=synth.nets))
+    asm = SampleAssembler(P.OscDecoder(), s.feed)
+    started = None
+    for i in range(n):
+        dgrams = P.sample_datagrams("osc", i, float(t[i]), pos[i], quats[i], meta if i in (0, 108) else None,
+                                    bundle=False, announce=tuple(meta))
+        if i == 0:
+            dgrams = [d for d in dgrams if b"devices\x00" not in d or b"meta_keys" in d]  # lost on the way
+            assert len(dgrams) == 1 + 1 + 3 + 3  # the number, the keys, height, floor, role, three devices
+        for j, d in enumerate(dgrams):
+            asm.datagram(d, 100.0 + float(t[i]) + j * 1e-5)
+        if i == 100:
+            assert s.calibration is None and s.status(100.0 + float(t[i]))["state"] == \
+                "waiting for the stream's metadata"
+        if started is None and s.calibration is not None:
+            started = i
+    assert started == 108 and s.calibration.devices == "openxr" and s.warnings == []
+    res = s.finish()
+    assert (res.take.meta["devices"], res.take.meta["height_m"], res.take.meta["floor_y"]) == \
+        ("openxr", "1.8000", "0.0000")
+    off, _ = _offline(synth, res.take)
+    assert max(_max_diff(res.duet, off).values()) <= TOL
+
+
+@pytest.mark.parametrize("announce", [True, False])
+def test_metadata_that_never_comes_is_waited_for_a_bounded_time(take, synth, announce):
+    """VMC samples announcing metadata that never comes: the calibration waits
+    ``META_WAIT_S`` past its window, then goes on under the defaults with one
+    warning saying which. A sender that announces nothing (any VMC sender) is
+    not waited for: calibrated at 1 s, no warning."""
+    from dancing_points_addon.live.session import META_WAIT_S
+
+    t, pos, quats = stream_rows(take, 72.0)
+    n = 72 * 4
+    s = LiveSession(LiveOptions(source="vmc", models=MODELS), Synthesizer(SynthesisOptions(models=MODELS),
+                                                                          nets=synth.nets))
+    asm = SampleAssembler(P.VmcDecoder(), s.feed)
+    started = None
+    for i in range(n):
+        (d,) = P.sample_datagrams("vmc", i, float(t[i]), pos[i], quats[i],
+                                  announce=("devices", "height_m", "role") if announce else None)
+        asm.datagram(d, 100.0 + float(t[i]))
+        if started is None and s.calibration is not None:
+            started = float(s.rows.time[s.rows.n - 1])
+    expect = 1.0 + META_WAIT_S if announce else 1.0
+    assert expect <= started < expect + 0.02
+    res = s.finish()
+    assert res.take.meta["devices"] == "openxr"
+    if announce:
+        assert len(s.warnings) == 1, s.warnings
+        w = s.warnings[0]
+        assert w.startswith("warning:") and "(devices, height_m)" in w and "devices openxr (the vmc default)" in w
+        assert "height 1.6" in w and "(estimated)" in w
+    else:
+        assert s.warnings == []
+    off, _ = _offline(synth, res.take)
+    assert max(_max_diff(res.duet, off).values()) <= TOL

@@ -484,6 +484,121 @@ def test_an_avatar_with_an_action_of_its_own_keeps_its_size(scene):
             bpy.data.objects.remove(o)
 
 
+def _rig_state(obj):
+    """What a retarget may change on a rig, as plain values: its custom properties
+    (reference pose, source, mapping convention), bone map, action, visibility."""
+    compat = bsu.compat()
+    action, _ = compat.assigned_action(obj)
+    return {"custom": {k: compat.plain_value(v) for k, v in obj.items()},
+            "map": [(i.target, i.source) for i in obj.dp_retarget_map] if obj.is_property_set("dp_retarget_map")
+            else None,
+            "action": (action.name, action.use_fake_user) if action is not None else None,
+            "animation_data": obj.animation_data is not None,
+            "hidden": (obj.hide_get(), obj.hide_viewport, obj.hide_render),
+            "actions": sorted(bpy.data.actions.keys())}
+
+
+def test_a_failed_retarget_leaves_the_rig_as_it_was(scene):
+    """A retarget that fails (a constraint overrides a mapped bone, a preset that
+    does not fit, the other rig of a duet run not mappable) leaves the rig exactly
+    as it was: no bone map, reference pose or other property of the run stays on
+    it, a bone map the user edited is not overwritten, its action and pose are its own."""
+    dp = scene["dp"]
+    src = dp["leader"]
+    linked = src.get("dp_retarget_target")
+    d = scene["dir"] / "failed"
+    d.mkdir()
+    arm, body = _import_avatar(ASSETS / AVATARS["leader"], d)
+    tiny = bsu.build_armature("Two Bones", [("Zork", None, (0, 0, 0), (0, 0, 0.5), 0.0),
+                                            ("Blip", "Zork", (0, 0, 0.5), (0, 0, 1.0), 0.0)], body=False)
+    empty = bpy.data.objects.new("Thigh Holder", None)
+    bpy.context.scene.collection.objects.link(empty)
+    try:
+        con = arm.pose.bones["LeftUpLeg"].constraints.new('COPY_ROTATION')
+        con.target = empty
+        arm.pose.bones["Head"].rotation_quaternion = (0.9, 0.1, 0.0, 0.0)
+        failures = (
+            (lambda: bpy.ops.dancing_points.retarget(source=src.name, target=arm.name), "constraints override"),
+            (lambda: bpy.ops.dancing_points.retarget(source=src.name, target=arm.name, preset="unreal"),
+             "exactly one bone mapped to 'root'"),
+            (lambda: bpy.ops.dancing_points.retarget_duet(duet=scene["duet"].name, leader_target=arm.name,
+                                                          follower_target=tiny.name), "Two Bones"))
+
+        def fail_all(what):
+            for run, why in failures:
+                before, pose = _rig_state(arm), bsu.pose_channels(arm)
+                with pytest.raises(RuntimeError, match=why):
+                    run()
+                assert _rig_state(arm) == before, (what, why)
+                np.testing.assert_allclose(bsu.pose_channels(arm), pose, atol=1e-7)
+
+        fail_all("a rig never retargeted")
+        assert "dp_reference_basis" not in arm and not arm.is_property_set("dp_retarget_map")
+        # Retargeted once (the constraint off), its bone map edited by the user, then failing again.
+        con.enabled = False
+        assert bpy.ops.dancing_points.retarget(source=src.name, target=arm.name) == {'FINISHED'}
+        con.enabled = True
+        next(i for i in arm.dp_retarget_map if i.target == "Neck").source = "lowerneck"
+        fail_all("a retargeted rig with an edited bone map")
+        assert next(i.source for i in arm.dp_retarget_map if i.target == "Neck") == "lowerneck"
+    finally:
+        for o in (body, arm, tiny, empty):
+            bpy.data.objects.remove(o)
+        if linked is not None:
+            src["dp_retarget_target"] = linked
+
+
+def test_retargeting_again_replaces_the_previous_output_action(scene):
+    """Retargeting a rig again replaces the retarget's previous action on it (it
+    was kept with a fake user: ten runs left ten 84-bone actions): removed when
+    nothing else uses it, kept when the user assigned it elsewhere or renamed it.
+    The rig's own action is kept (fake user) as before."""
+    dp = scene["dp"]
+    src = dp["leader"]
+    linked = src.get("dp_retarget_target")
+    d = scene["dir"] / "again"
+    d.mkdir()
+    arm, body = _import_avatar(ASSETS / AVATARS["leader"], d)
+    keeper = bpy.data.objects.new("Keeper", None)
+    bpy.context.scene.collection.objects.link(keeper)
+    try:
+        compat = bsu.compat()
+        own, slot = compat.new_action_for(arm, "Avatar Own Action")
+        compat.write_keys(compat.ensure_fcurves(own, slot, 'pose.bones["Hips"].location', 0, "Hips"), [1, 2],
+                          [0.0, 0.0])
+
+        def retarget():
+            assert bpy.ops.dancing_points.retarget(source=src.name, target=arm.name) == {'FINISHED'}
+            return arm.animation_data.action
+
+        first = retarget()
+        assert own.name in bpy.data.actions and own.use_fake_user and own.users == 1
+        count = len(bpy.data.actions)
+        outputs = [first.session_uid]  # (a removed action's name is free for the next one)
+        for _ in range(3):
+            outputs.append(retarget().session_uid)
+        left = {a.session_uid for a in bpy.data.actions} & set(outputs[:-1])
+        print(f"\n4 retargets onto '{arm.name}': {count} actions after the first, {len(bpy.data.actions)} after "
+              f"the last; {len(left)} of the 3 replaced outputs left")
+        assert len(bpy.data.actions) == count and not left
+        assert arm.animation_data.action.name == f"DP {arm.name} {src.name}"  # its name, not "… .001"
+        assert own.name in bpy.data.actions and own.use_fake_user
+        # The user's own use of an output: assigned to another object, or renamed: kept.
+        used = arm.animation_data.action
+        keeper.animation_data_create().action = used
+        renamed = retarget()
+        assert keeper.animation_data.action == used and used.name in bpy.data.actions
+        renamed.name = "My Favourite Take"
+        retarget()
+        assert renamed.name in bpy.data.actions and renamed.use_fake_user
+        assert len(bpy.data.actions) == count + 2
+    finally:
+        for o in (body, arm, keeper):
+            bpy.data.objects.remove(o)
+        if linked is not None:
+            src["dp_retarget_target"] = linked
+
+
 def test_bad_input_reports_one_line(scene):
     dp = scene["dp"]
     with pytest.raises(RuntimeError, match="no object named"):

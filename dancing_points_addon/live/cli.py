@@ -141,6 +141,14 @@ def cmd_live(args) -> int:
                     f"{'recording ' + format(args.duration, 'g') + ' s' if args.duration else 'Ctrl-C ends the take'}"),
           flush=True)
     next_log = time.perf_counter() + STATUS_LOG_EVERY_S
+    warned = 0
+
+    def warn(over_status: bool) -> None:  # the session's warnings not yet printed, each on its own line
+        nonlocal warned
+        for line in session.warnings[warned:]:
+            print(("\r" + " " * 160 + "\r" if over_status else "") + printable(line), flush=True)
+            warned += 1
+
     try:
         try:
             while True:
@@ -148,6 +156,7 @@ def cmd_live(args) -> int:
                 for failed in (rx, session):
                     if failed.error is not None:
                         raise UserError(f"the live loop stopped: {failed.error}")
+                warn(tty)
                 now = time.perf_counter()
                 if args.duration and session.t_first is not None and now - session.t_first >= args.duration:
                     break
@@ -164,6 +173,7 @@ def cmd_live(args) -> int:
         rx.stop()
         session.stop()
     result = session.finish()
+    warn(False)  # (a calibration made at the end)
     if result.duet is None:
         raise UserError("the recording is too short for a duet (under two 30 Hz frames)")
     atomic_outputs([(csv, lambda f: f.write(take_to_text(result.take).encode("utf-8"))),

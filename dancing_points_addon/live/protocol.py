@@ -50,6 +50,10 @@ OSC_DEVICE = {OSC_PREFIX + d: i for i, d in enumerate(DEVICES)}
 OSC_FRAME = OSC_PREFIX + "frame"  # ,i: the sender's sample number
 OSC_META = OSC_PREFIX + "meta"  # ,ss: a take metadata key and its value
 META_KEYS = ("devices", "height_m", "floor_y", "role", "head_offset_m", "lhand_offset_m", "rhand_offset_m")
+# ``/dancing_points/meta ,ss "meta_keys" "devices,height_m,..."``: the keys of the metadata a sender sends
+# (``stream`` puts it in every sample), so that a receiver knows to wait for metadata lost on the way; a
+# receiver that does not know it ignores it as an unknown key.
+META_ANNOUNCE = "meta_keys"
 HAND_SIDE_M = 0.05  # a lone controller is given a side only this far to one side of the head
 
 
@@ -306,7 +310,7 @@ def _read_extra(pk: Packet, address, args) -> None:
         if len(args) != 2 or not all(isinstance(a, str) for a in args):
             raise BadMessage("meta needs a key and a value (two strings)")
         key, value = args
-        if key in META_KEYS and len(value) <= 100 and value.isprintable():
+        if (key in META_KEYS or key == META_ANNOUNCE) and len(value) <= 100 and value.isprintable():
             pk.meta[key] = value
 
 
@@ -320,7 +324,8 @@ class OscDecoder:
     take file's columns); seven NaN: that device is lost. ``/dancing_points/frame
     ,i``: the sender's sample number; ``/dancing_points/meta ,ss``: a take
     metadata key and value (``devices``, ``height_m``, ``floor_y``, ``role``,
-    the offsets)."""
+    the offsets); ``/dancing_points/meta ,ss meta_keys devices,height_m,...``:
+    the keys of the metadata the sender sends (see :data:`META_ANNOUNCE`)."""
 
     kind = "osc"
     default_devices = "joints"
@@ -359,12 +364,15 @@ def decoder_for(fmt: str, left: str | None = None, right: str | None = None):
 VMC_SERIALS = ("DP_Head", "DP_LeftHand", "DP_RightHand")
 
 
-def sample_datagrams(fmt: str, frame: int, clock: float, positions, quats, meta=None, bundle=True) -> list:
+def sample_datagrams(fmt: str, frame: int, clock: float, positions, quats, meta=None, bundle=True,
+                     announce=None) -> list:
     """The datagrams of one sample (what ``stream`` sends): ``positions (3, 3)``,
     ``quats (3, 4)`` w,x,y,z motion space, NaN where a device is lost; ``meta``:
-    take metadata to send with it. VMC: one bundle (``/VMC/Ext/T``, the head, the
-    two controllers, ``/VMC/Ext/OK``, our sample number; a lost device is left
-    out). Ours: one bundle, or (``bundle=False``) one message each."""
+    take metadata to send with it; ``announce``: the metadata keys the sender
+    sends (:data:`META_ANNOUNCE`), for every sample. VMC: one bundle
+    (``/VMC/Ext/T``, the head, the two controllers, ``/VMC/Ext/OK``, our sample
+    number; a lost device is left out). Ours: one bundle, or (``bundle=False``)
+    one message each."""
     from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
     from pythonosc.osc_message_builder import OscMessageBuilder
 
@@ -395,6 +403,8 @@ def sample_datagrams(fmt: str, frame: int, clock: float, positions, quats, meta=
     msgs.append(msg(OSC_FRAME, ("i", int(frame) & 0x7FFFFFFF)))
     for k, v in (meta or {}).items():
         msgs.insert(0, msg(OSC_META, ("s", str(k)), ("s", str(v))))
+    if announce:
+        msgs.insert(0, msg(OSC_META, ("s", META_ANNOUNCE), ("s", ",".join(announce))))
     if fmt == "osc" and not bundle:
         # the sample number first: it opens the sample's group at the receiver
         return [m.dgram for m in [msgs[-1]] + msgs[:-1]]

@@ -23,6 +23,13 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
    when the height is given) and the duet starts then, from the first row. The
    values used are the ones the take's metadata carry (``height_m`` and
    ``floor_y`` to 0.1 mm), so the take reads back with the same calibration.
+   A sender that announces its metadata's keys (``stream`` does:
+   :data:`~.protocol.META_ANNOUNCE`) and whose metadata the calibration reads
+   has not all come (lost on the way) is waited for, at most
+   :data:`META_WAIT_S` seconds past the calibration window; then the
+   calibration goes on without it and says so (:attr:`LiveSession.warnings`).
+   A sender that announces nothing (any other VMC or OSC sender) is not waited
+   for.
 4. **frames**: each row is read as the calibration says, as
    :func:`~..calibration.apply_calibration` reads a take, then resampled
    causally to 30 Hz (:class:`.rows.CausalResampler`: the frames of
@@ -49,9 +56,16 @@ from ..errors import UserError
 from ..formats.take import Take
 from ..resample import NET_FPS, output_offsets
 from . import ROLES
+from .protocol import META_ANNOUNCE
 from .receiver import Counters, Sample
 from .rows import CausalResampler, Rows, as_read, as_written
+
 SOURCE_DEVICES = {"vmc": "openxr", "osc": "joints", "xr": "openxr"}
+META_WAIT_S = 2.0  # announced metadata not yet come: the calibration waits this long past its window
+# the stream's metadata keys the calibration reads, and the option that overrides each
+CALIBRATION_META = {"devices": "devices", "height_m": "height", "floor_y": "floor_y",
+                    "head_offset_m": "head_offset", "lhand_offset_m": "hand_offset",
+                    "rhand_offset_m": "hand_offset"}
 
 
 @dataclass(frozen=True)
@@ -132,10 +146,12 @@ class LiveSession:
         self.t_first = None  # the clock's time of the take's first row
         self.stream_meta = {}
         self.calibration = None
+        self.warnings = []  # lines for the user (the calibration went on without the announced metadata)
         self.resampler = CausalResampler()
         self._last_dev = [None, None, None]  # per device: (clock time, (position, quat)) last heard
         self._done = 0  # rows read into frames
         self._catchup = 0  # rows read when the calibration came (not live: no latency counted)
+        self._calibrated_t = 0.0  # the take's time of the row the calibration came with
         self._silent = False  # the last row was made of silence
         self._frames = {k: [] for k in ("lp", "lr", "lc", "fp", "fr", "fc", "pred", "planted")}
         self.latest = None  # (k, leader DuetFrame, follower DuetFrame, arrival of the row that made it)
@@ -280,8 +296,18 @@ class LiveSession:
             return True
         return self.stream_meta.get(key) not in (None, "")
 
+    def missing_meta(self) -> list:
+        """The keys the sender announced (:data:`~.protocol.META_ANNOUNCE`) that
+        the calibration reads, no option overrides and have not come yet."""
+        announced = self.stream_meta.get(META_ANNOUNCE) or ""
+        o = self.options
+        return [k for k in dict.fromkeys(announced.split(","))
+                if k in CALIBRATION_META and getattr(o, CALIBRATION_META[k]) is None and k not in self.stream_meta]
+
     def _can_calibrate(self, t) -> bool:
         o = self.options
+        if self.missing_meta() and t < o.calibration_s + META_WAIT_S:
+            return False  # announced and not come (lost on the way): it comes again
         return t >= o.calibration_s or (self._known("height_m", o.height) and self._known("floor_y", o.floor_y))
 
     def _meta(self) -> dict:
@@ -316,6 +342,25 @@ class LiveSession:
                                        c.floor_source, c.offsets)
         self.synth.set_calibration(self.calibration)
         self._catchup = n  # the rows before: read into frames at once, not live
+        self._calibrated_t = float(self.rows.time[n - 1])
+        missing = self.missing_meta()
+        if missing:
+            self._warn_missing(missing, self._calibrated_t)
+
+    def _warn_missing(self, missing, t) -> None:
+        c = self.calibration
+        said = []
+        if "devices" in missing:
+            said.append(f"devices {c.devices} (the {self.options.source} default)")
+        if "height_m" in missing:
+            said.append(f"height {c.height:.2f} m ({c.height_source})")
+        if "floor_y" in missing:
+            said.append(f"floor at y = {c.floor_y:+.3f} m ({c.floor_source})")
+        if any(k.endswith("_offset_m") for k in missing):
+            said.append("the default body offsets")
+        self.warnings.append(f"warning: the sender's take metadata ({', '.join(missing)}) had not come "
+                             f"{t:.1f} s into the take (lost on the way?); calibrated without it: "
+                             f"{', '.join(said)}")
 
     def _work(self, budget_s) -> int:
         """Read the rows not yet read into frames (the catch-up's for at most
@@ -367,7 +412,8 @@ class LiveSession:
         if self.t_first is None:
             state = "waiting for the dancer (head and both hands)"
         elif self.calibration is None:
-            state = "calibrating"
+            waiting = self.missing_meta() and now - self.t_first >= self.options.calibration_s
+            state = "waiting for the stream's metadata" if waiting else "calibrating"
         else:
             state = "dancing"
         return {"rate_hz": float(len(recent)), "frames": len(self._frames["lp"]), "state": state,
@@ -423,7 +469,7 @@ class LiveSession:
             take = Take(times.copy(), pos.copy(), quat.copy(), self.take_meta())
             duet = self._duet(T)
             return LiveResult(take, duet, self.counters.snapshot(), self._latency_stats(0.0),
-                              self._latency_stats(self.options.calibration_s + 1.0))
+                              self._latency_stats(self._calibrated_t + 1.0))
 
     def _latency_stats(self, after_s):
         """(median, 99th percentile) ms of the latency of the frames made live from ``after_s`` into the take."""

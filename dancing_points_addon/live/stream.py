@@ -3,9 +3,15 @@ and demonstrations of the live loop.
 
 Each sample is sent when its time comes (the take's own times, or the take
 resampled to ``rate``), as the datagrams of :func:`~.protocol.sample_datagrams`
-with the sample's number and, with the first sample and then once a second,
-the take's metadata (``devices``, ``height_m``, ``floor_y``, ``role``, the
-offsets) under ``/dancing_points/meta``, which other VMC receivers ignore.
+with the sample's number, the keys of the take's metadata
+(:data:`~.protocol.META_ANNOUNCE`) and the metadata itself (``devices``,
+``height_m``, ``floor_y``, ``role``, the offsets), all under
+``/dancing_points/...``, which other VMC receivers ignore. The metadata goes
+with every sample of the first :data:`META_EVERY_SAMPLE_S` seconds (the
+receiver's calibration window and its wait for metadata: a lossy link loses
+all of them only with a vanishing chance), then every :data:`META_EVERY_S`
+seconds (for a receiver started later); the keys go with every sample, so
+that a receiver knows what it has yet to hear.
 ``drop``: a share of the datagrams left unsent on purpose (seeded), to test
 how the receiver takes lost packets.
 """
@@ -19,6 +25,9 @@ import numpy as np
 
 from ..formats.take import Take
 from .protocol import META_KEYS, sample_datagrams
+
+META_EVERY_SAMPLE_S = 4.0  # > the receiver's calibration window and wait (session.META_WAIT_S): 1 s + 2 s
+META_EVERY_S = 0.25
 
 
 def stream_rows(take: Take, rate: float | None = None):
@@ -45,7 +54,8 @@ def stream_take(take: Take, port: int, host: str = "127.0.0.1", fmt: str = "vmc"
     period = float(times[-1]) + step  # a loop starts again one sample after the end
     meta = {k: str(v) for k, v in take.meta.items() if k in META_KEYS}
     meta.setdefault("devices", "joints")  # SPEC §3's default: a take without it carries the §2 points
-    per_meta = max(1, int(round(1.0 / step)))
+    keys = tuple(meta)
+    per_meta = max(1, int(round(META_EVERY_S / step)))
     rng = random.Random(seed)
     sent = dropped = errors = n = 0
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -64,7 +74,8 @@ def stream_take(take: Take, port: int, host: str = "127.0.0.1", fmt: str = "vmc"
                 sleep(wait - 0.001)
             while clock() < start + rel:
                 pass
-            dgrams = sample_datagrams(fmt, n, rel, pos[i], quats[i], meta if n % per_meta == 0 else None, bundle)
+            with_meta = rel < META_EVERY_SAMPLE_S or n % per_meta == 0
+            dgrams = sample_datagrams(fmt, n, rel, pos[i], quats[i], meta if with_meta else None, bundle, keys)
             for d in dgrams:
                 if drop and rng.random() < drop:
                     dropped += 1

@@ -5,7 +5,10 @@
   Dancing Points armature (leader or follower of a baked duet) becomes a NEW
   action on the target armature (one keyframe per frame, written in bulk);
   its meshes, rest pose and other actions are left as they are (an action that
-  would be left without users gets a fake user so it is kept).
+  would be left without users gets a fake user so it is kept), but for the
+  rig's previous output of the retarget, removed when nothing else uses it.
+  A retarget that fails leaves the rig as it was (action, pose, bone map,
+  custom properties).
 - ``bpy.ops.dancing_points.retarget_duet()``: both dancers at once (the hands
   that hold each other are closed symmetrically), from the panel's pickers.
 - ``dancing_points.retarget_map_auto`` / ``_save`` / ``_load``: the bone

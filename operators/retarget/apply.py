@@ -20,6 +20,7 @@ from ...dancing_points_addon.retarget import RetargetError
 from ...dancing_points_addon.retarget import rigify as rgf
 from .. import compat
 from .keying import key_rig
+from .props import MAP_PROP, RIG_PROPS
 from .rig import mat
 
 CHECK_FRAMES = 6  # frames evaluated by verify()
@@ -49,7 +50,7 @@ def snapshot(obj):
         if pb is not None and p in pb.keys():
             props[(b, p)] = pb[p]
     return {"action": action, "slot": slot, "fake": action.use_fake_user if action is not None else False,
-            "pose": pose, "props": props, "custom": {k: obj.get(k) for k in ("dp_retarget_source",)},
+            "anim": obj.animation_data is not None, "pose": pose, "props": props,
             "frame": bpy.context.scene.frame_current}
 
 
@@ -77,12 +78,34 @@ def restore(obj, snap, new_action=None):
         pb.rotation_axis_angle, pb.scale = aa, s
     for (b, p), v in snap["props"].items():
         obj.pose.bones[b][p] = v
-    for k, v in snap["custom"].items():
+    if not snap["anim"] and obj.animation_data is not None:
+        obj.animation_data_clear()  # made by the retarget (a new action), nothing else on it
+    bpy.context.scene.frame_set(snap["frame"])
+
+
+def stored_state(obj):
+    """What a retarget stores on a target rig before solving: its bone map rows
+    (``Object.dp_retarget_map``) and custom properties (reference pose, source,
+    mapping convention), as plain values for :func:`restore_stored`."""
+    rows = [(i.target, i.source) for i in obj.dp_retarget_map] if obj.is_property_set(MAP_PROP) else None
+    return {"map": rows, "custom": {k: compat.plain_value(obj[k]) if k in obj else None for k in RIG_PROPS}}
+
+
+def restore_stored(obj, state):
+    """Put back what :func:`stored_state` saw (a property it did not see is removed)."""
+    if state["map"] is None:
+        obj.property_unset(MAP_PROP)
+    elif [(i.target, i.source) for i in obj.dp_retarget_map] != state["map"]:
+        coll = obj.dp_retarget_map
+        coll.clear()
+        for target, source in state["map"]:
+            item = coll.add()
+            item.target, item.source = target, source
+    for k, v in state["custom"].items():
         if v is None:
             obj.pop(k, None)
         else:
             obj[k] = v
-    bpy.context.scene.frame_set(snap["frame"])
 
 
 # -- Rigify controls -------------------------------------------------------------

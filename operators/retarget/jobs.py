@@ -15,7 +15,7 @@ from .. import bake
 from ..kinds import is_duet
 from ..props import ROLE_PROP, ROLES
 from . import apply
-from .keying import key_rig, keyed_world
+from .keying import key_rig, keyed_world, mark_output, release
 from .mapping import mapping_for, stored_mapping
 from .props import SOURCE_PROP, TARGET_PROP
 from .rig import source_motion, target_rig
@@ -35,6 +35,16 @@ class _Job:
             raise RetargetError("'{:s}' is a Dancing Points armature (a duet's dancer), not a rig to "
                                 "retarget onto".format(target.name))
         self.source, self.target = source, target
+        self.stored = apply.stored_state(target)  # bone map, reference pose, ...: put back by undo()
+        self.snap = self.action = None
+        try:
+            self._solve(preset, foot_lock, origin)
+        except BaseException:
+            self.undo()
+            raise
+
+    def _solve(self, preset, foot_lock, origin):
+        source, target = self.source, self.target
         bpy.context.view_layer.update()  # up-to-date matrix_world of objects moved since the last evaluation
         self.frames, self.pos, self.rot, bv, self.src_matrix = source_motion(source)
         self.notes = []
@@ -55,8 +65,9 @@ class _Job:
     def key(self):
         """Key the solved pose (a new action; on a Rigify rig its controls), then
         check with Blender's evaluation that the rig follows it; when it does not,
-        the rig is put back as it was and :class:`RetargetError` raised. Returns the action."""
-        name = "DP {:s} {:s}".format(self.target.name, self.source.name)
+        the rig is put back as it was and :class:`RetargetError` raised. Returns the
+        action (the rig's previous one is still there: see :func:`_commit`)."""
+        self.name = name = "DP {:s} {:s}".format(self.target.name, self.source.name)
         self.snap = apply.snapshot(self.target)
         self.src_prev = self.source.get(TARGET_PROP)
         self.action = None
@@ -66,6 +77,7 @@ class _Job:
                 self.action = apply.key_controls(self.target, self.pose.W, self.frames, name)
             else:
                 self.action = key_rig(self.target, self.ret.basis(self.pose.W), self.frames, name)
+            mark_output(self.action)
             self.verified_error = apply.verify(self.target, self.ret, self.pose.W, self.frames)
         except Exception:
             self.undo()
@@ -76,14 +88,16 @@ class _Job:
         return self.action
 
     def undo(self):
-        """Put the target back as it was before :meth:`key`."""
-        if getattr(self, "snap", None) is not None:
+        """Put the target back as it was before this job: its action, pose, bone
+        map and custom properties (and the source's link to it)."""
+        if self.snap is not None:
             apply.restore(self.target, self.snap, self.action)
             if self.src_prev is None:
                 self.source.pop(TARGET_PROP, None)
             else:
                 self.source[TARGET_PROP] = self.src_prev
             self.snap = self.action = None
+        apply.restore_stored(self.target, self.stored)
 
     def info(self):
         out = {"action": self.action, "scale": self.ret.scale, "pose": self.pose, "retargeter": self.ret,
@@ -91,6 +105,23 @@ class _Job:
         if self.notes:
             out["note"] = " ".join(self.notes)
         return out
+
+
+def _commit(jobs):
+    """Once every rig of the run is keyed: the actions the new ones replaced go when
+    they were earlier outputs of the retarget that nothing uses any more (each once:
+    two rigs may have played the same one)."""
+    new, old = [job.action for job in jobs], []
+    for job in jobs:
+        prev = job.snap["action"]
+        if prev is not None and prev not in new and prev not in old:
+            old.append(prev)
+    for prev in old:
+        release(prev)
+    for job in jobs:  # made while the output it replaced still had the name ("… .001"): take it back
+        if job.action.name != job.name and job.name not in bpy.data.actions:
+            job.action.name = job.name
+            mark_output(job.action)
 
 
 def _duet_origin(*sources):
@@ -130,34 +161,47 @@ def _partner_of(source):
     return None
 
 
+def _close_onto_partners_rig(job, info):
+    """Close ``job``'s hands onto the rig its source's partner was retargeted onto, if any."""
+    source, target = job.source, job.target
+    partner = _partner_of(source)
+    prig = bpy.data.objects.get(partner.get(TARGET_PROP, "")) if partner is not None else None
+    if prig is None or prig.type != 'ARMATURE' or prig == target \
+            or prig.get(SOURCE_PROP) != partner.name or not stored_mapping(prig):
+        return
+    try:
+        pframes, ppos, prot, pbv, pmat = source_motion(partner)
+        if len(pframes) == len(job.frames) and np.allclose(pframes, job.frames):
+            pmap = stored_mapping(prig)
+            pctl = apply.uses_controls(prig, pmap)
+            prest = target_rig(prig, store=False, deform_parents=pctl)
+            pret = rt.Retargeter(pbv, prest, pmap, foot_lock=False,
+                                 rigid=rgf.rigid_segments(pmap) if pctl else ())
+            if apply.uses_controls(prig, pret.mapping):  # keyed on controls: Blender's evaluation
+                pw = pret.wrists(apply.evaluated_world(prig, job.frames))
+            else:
+                pw = pret.wrists(keyed_world(prig, pret, job.frames))
+            src_b = rt.source_wrists(rt.source_world(ppos, prot, pmat)[0])
+            before, after = rt.close_hands(job.ret, job.pose, job.src_wrists(), src_b, wrists_b=pw)
+            info["hand_gap_before"], info["hand_gap_after"] = before, after
+    except UserError as exc:
+        info["warning"] = "hands not closed: {:s}".format(error_message(exc))
+
+
 def retarget_one(context, source, target, preset="", foot_lock=True, close_hands=True):
     """Retarget ``source`` (a DP armature) onto ``target``; the hands close onto the
     partner's rig when the partner dancer was already retargeted. Returns a dict of figures."""
     bake.ensure_object_mode(context)
     job = _Job(source, target, preset, foot_lock)
     info = {"scale": job.ret.scale, "frames": len(job.frames)}
-    partner = _partner_of(source) if close_hands else None
-    prig = bpy.data.objects.get(partner.get(TARGET_PROP, "")) if partner is not None else None
-    if prig is not None and prig.type == 'ARMATURE' and prig != target \
-            and prig.get(SOURCE_PROP) == partner.name and stored_mapping(prig):
-        try:
-            pframes, ppos, prot, pbv, pmat = source_motion(partner)
-            if len(pframes) == len(job.frames) and np.allclose(pframes, job.frames):
-                pmap = stored_mapping(prig)
-                pctl = apply.uses_controls(prig, pmap)
-                prest = target_rig(prig, store=False, deform_parents=pctl)
-                pret = rt.Retargeter(pbv, prest, pmap, foot_lock=False,
-                                     rigid=rgf.rigid_segments(pmap) if pctl else ())
-                if apply.uses_controls(prig, pret.mapping):  # keyed on controls: Blender's evaluation
-                    pw = pret.wrists(apply.evaluated_world(prig, job.frames))
-                else:
-                    pw = pret.wrists(keyed_world(prig, pret, job.frames))
-                src_b = rt.source_wrists(rt.source_world(ppos, prot, pmat)[0])
-                before, after = rt.close_hands(job.ret, job.pose, job.src_wrists(), src_b, wrists_b=pw)
-                info["hand_gap_before"], info["hand_gap_after"] = before, after
-        except UserError as exc:
-            info["warning"] = "hands not closed: {:s}".format(error_message(exc))
-    job.key()
+    try:
+        if close_hands:
+            _close_onto_partners_rig(job, info)
+        job.key()
+    except BaseException:
+        job.undo()
+        raise
+    _commit([job])
     info.update(job.info())
     info["frames"] = len(job.frames)
     return info
@@ -170,21 +214,21 @@ def retarget_pair(context, pairs, preset=("", ""), foot_lock=True, close_hands=T
         raise RetargetError("'{:s}' is picked for both dancers: one rig can dance one part".format(pairs[0][1].name))
     bake.ensure_object_mode(context)
     origin = _duet_origin(*[s for s, _ in pairs]) if len(pairs) == 2 else None
-    jobs = [_Job(s, t, p, foot_lock, origin) for (s, t), p in zip(pairs, preset)]
-    out = {}
-    if close_hands and len(jobs) == 2 and len(jobs[0].frames) == len(jobs[1].frames):
-        a, b = jobs
-        before, after = rt.close_hands(a.ret, a.pose, a.src_wrists(), b.src_wrists(), b.ret, b.pose)
-        out["hand_gap_before"], out["hand_gap_after"] = before, after
-    done = []
+    jobs, out = [], {}
     try:
+        for (s, t), p in zip(pairs, preset):
+            jobs.append(_Job(s, t, p, foot_lock, origin))
+        if close_hands and len(jobs) == 2 and len(jobs[0].frames) == len(jobs[1].frames):
+            a, b = jobs
+            before, after = rt.close_hands(a.ret, a.pose, a.src_wrists(), b.src_wrists(), b.ret, b.pose)
+            out["hand_gap_before"], out["hand_gap_after"] = before, after
         for job in jobs:
             job.key()
-            done.append(job)
-    except Exception:
-        for job in reversed(done):  # all or nothing: the other rig back as it was too
+    except BaseException:
+        for job in reversed(jobs):  # all or nothing: the other rig back as it was too
             job.undo()
         raise
+    _commit(jobs)
     for job, role in zip(jobs, ROLES):
         out[role] = job.info()
     return out

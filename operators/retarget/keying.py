@@ -1,6 +1,9 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""Writing the retargeted motion as keys on the target rig (a new action), and
-reading a keyed rig's world matrices back from its action."""
+"""Writing the retargeted motion as keys on the target rig (a new action, marked
+as the retarget's output), and reading a keyed rig's world matrices back from
+its action. The rig's previous action is kept (a fake user when it would have
+none) unless it is an earlier output of the retarget: that one is removed once
+the new one is in place, when nothing else uses it (:func:`release`)."""
 
 import bpy
 import numpy as np
@@ -8,11 +11,30 @@ import numpy as np
 from ...dancing_points_addon import retarget as rt
 from ...dancing_points_addon.rotations import axis_angle_to_quat, euler_to_matrix, quat_to_axis_angle, quat_to_matrix
 from .. import compat
+from .props import OUTPUT_PROP
 from .rig import mat
 
 
 def _path(name, prop):
     return 'pose.bones["{:s}"].{:s}'.format(bpy.utils.escape_identifier(name), prop)
+
+
+def is_output(action):
+    """Whether ``action`` is a retarget's output as it made it (:func:`mark_output`;
+    renamed or copied, it is the user's)."""
+    return action is not None and action.get(OUTPUT_PROP) == action.name
+
+
+def mark_output(action):
+    """Mark ``action`` as made by the retarget (:func:`release` may remove it once replaced)."""
+    action[OUTPUT_PROP] = action.name
+
+
+def release(action):
+    """Remove ``action``, a retarget's output that a new one replaced, when nothing
+    uses it any more (a fake user aside); one the user assigned elsewhere stays."""
+    if is_output(action) and action.users == int(action.use_fake_user):
+        bpy.data.actions.remove(action)
 
 
 def key_rig(obj, basis, frames, action_name, bones=None, extra=()):
@@ -24,8 +46,8 @@ def key_rig(obj, basis, frames, action_name, bones=None, extra=()):
     modes = [obj.pose.bones[n].rotation_mode for n in names]
     loc, rot, scale = rt.channels(basis, modes)
     old, _ = compat.assigned_action(obj)
-    if old is not None and old.users <= 1 and not old.use_fake_user:
-        old.use_fake_user = True  # keep the rig's previous action when the new one replaces it
+    if old is not None and old.users <= 1 and not old.use_fake_user and not is_output(old):
+        old.use_fake_user = True  # keep the rig's own previous action when the new one replaces it
     action, slot = compat.new_action_for(obj, action_name)
 
     def key(name, prop, values):

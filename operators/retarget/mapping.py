@@ -9,8 +9,7 @@ import bpy
 from ...dancing_points_addon import retarget as rt
 from ...dancing_points_addon.retarget import RetargetError
 from ...dancing_points_addon.retarget.structure import describe, structural_mapping
-
-CONVENTION_PROP = "dp_retarget_convention"  # on a target rig: how its stored mapping was made
+from .props import CONVENTION_PROP
 
 
 def stored_mapping(obj):

@@ -11,6 +11,11 @@ from ..props import ROLE_PROP, ROLES
 REF_PROP = "dp_reference_basis"  # on a target rig: its reference pose (matrix_basis, flattened)
 SOURCE_PROP = "dp_retarget_source"  # on a retargeted rig: the DP armature it follows
 TARGET_PROP = "dp_retarget_target"  # on a DP armature: the rig it was retargeted onto
+CONVENTION_PROP = "dp_retarget_convention"  # on a target rig: how its stored mapping was made
+# on an action the retarget made: its name then (renamed or copied, the action is the user's: never removed)
+OUTPUT_PROP = "dp_retarget_output"
+MAP_PROP = "dp_retarget_map"  # Object.dp_retarget_map: the bone mapping rows
+RIG_PROPS = (REF_PROP, SOURCE_PROP, CONVENTION_PROP)  # the custom properties a retarget sets on a target rig
 
 
 class DP_RetargetBoneMap(bpy.types.PropertyGroup):
