@@ -29,6 +29,7 @@ Models: the shipped ``models/`` (``$DP_MODEL_DIR`` overrides).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 
@@ -498,22 +499,38 @@ def _rig_state(obj):
             "actions": sorted(bpy.data.actions.keys())}
 
 
+@contextlib.contextmanager
+def _avatar_copy(scene, folder):
+    """A fresh copy of the leader's avatar for one test, retargeted from the
+    fixture's leader: ``(source, rig, others)``; the rig, its body and the
+    objects the test puts in ``others`` are removed after it, and the source's
+    link to the fixture's rig is put back."""
+    src = scene["dp"]["leader"]
+    linked = src.get("dp_retarget_target")
+    d = scene["dir"] / folder
+    d.mkdir()
+    arm, body = _import_avatar(ASSETS / AVATARS["leader"], d)
+    others = []
+    try:
+        yield src, arm, others
+    finally:
+        for o in (body, arm, *others):
+            bpy.data.objects.remove(o)
+        if linked is not None:
+            src["dp_retarget_target"] = linked
+
+
 def test_a_failed_retarget_leaves_the_rig_as_it_was(scene):
     """A retarget that fails (a constraint overrides a mapped bone, a preset that
     does not fit, the other rig of a duet run not mappable) leaves the rig exactly
     as it was: no bone map, reference pose or other property of the run stays on
     it, a bone map the user edited is not overwritten, its action and pose are its own."""
-    dp = scene["dp"]
-    src = dp["leader"]
-    linked = src.get("dp_retarget_target")
-    d = scene["dir"] / "failed"
-    d.mkdir()
-    arm, body = _import_avatar(ASSETS / AVATARS["leader"], d)
-    tiny = bsu.build_armature("Two Bones", [("Zork", None, (0, 0, 0), (0, 0, 0.5), 0.0),
-                                            ("Blip", "Zork", (0, 0, 0.5), (0, 0, 1.0), 0.0)], body=False)
-    empty = bpy.data.objects.new("Thigh Holder", None)
-    bpy.context.scene.collection.objects.link(empty)
-    try:
+    with _avatar_copy(scene, "failed") as (src, arm, others):
+        tiny = bsu.build_armature("Two Bones", [("Zork", None, (0, 0, 0), (0, 0, 0.5), 0.0),
+                                                ("Blip", "Zork", (0, 0, 0.5), (0, 0, 1.0), 0.0)], body=False)
+        empty = bpy.data.objects.new("Thigh Holder", None)
+        bpy.context.scene.collection.objects.link(empty)
+        others += [tiny, empty]
         con = arm.pose.bones["LeftUpLeg"].constraints.new('COPY_ROTATION')
         con.target = empty
         arm.pose.bones["Head"].rotation_quaternion = (0.9, 0.1, 0.0, 0.0)
@@ -541,11 +558,6 @@ def test_a_failed_retarget_leaves_the_rig_as_it_was(scene):
         next(i for i in arm.dp_retarget_map if i.target == "Neck").source = "lowerneck"
         fail_all("a retargeted rig with an edited bone map")
         assert next(i.source for i in arm.dp_retarget_map if i.target == "Neck") == "lowerneck"
-    finally:
-        for o in (body, arm, tiny, empty):
-            bpy.data.objects.remove(o)
-        if linked is not None:
-            src["dp_retarget_target"] = linked
 
 
 def test_retargeting_again_replaces_the_previous_output_action(scene):
@@ -553,15 +565,10 @@ def test_retargeting_again_replaces_the_previous_output_action(scene):
     was kept with a fake user: ten runs left ten 84-bone actions): removed when
     nothing else uses it, kept when the user assigned it elsewhere or renamed it.
     The rig's own action is kept (fake user) as before."""
-    dp = scene["dp"]
-    src = dp["leader"]
-    linked = src.get("dp_retarget_target")
-    d = scene["dir"] / "again"
-    d.mkdir()
-    arm, body = _import_avatar(ASSETS / AVATARS["leader"], d)
-    keeper = bpy.data.objects.new("Keeper", None)
-    bpy.context.scene.collection.objects.link(keeper)
-    try:
+    with _avatar_copy(scene, "again") as (src, arm, others):
+        keeper = bpy.data.objects.new("Keeper", None)
+        bpy.context.scene.collection.objects.link(keeper)
+        others += [keeper]
         compat = bsu.compat()
         own, slot = compat.new_action_for(arm, "Avatar Own Action")
         compat.write_keys(compat.ensure_fcurves(own, slot, 'pose.bones["Hips"].location', 0, "Hips"), [1, 2],
@@ -592,11 +599,6 @@ def test_retargeting_again_replaces_the_previous_output_action(scene):
         retarget()
         assert renamed.name in bpy.data.actions and renamed.use_fake_user
         assert len(bpy.data.actions) == count + 2
-    finally:
-        for o in (body, arm, keeper):
-            bpy.data.objects.remove(o)
-        if linked is not None:
-            src["dp_retarget_target"] = linked
 
 
 def test_bad_input_reports_one_line(scene):
