@@ -24,7 +24,9 @@ import pytest
 
 from conftest import MODELS, ROOT
 from dancing_points_addon.calibration import headset_take
-from dancing_points_addon.formats.take import parse_take_bytes, read_take, take_to_text
+from dancing_points_addon.errors import UserError
+from dancing_points_addon.formats.asf_amc import load_amc
+from dancing_points_addon.formats.take import Take, parse_take_bytes, read_take, take_from_motion, take_to_text
 from dancing_points_addon.live import protocol as P
 from dancing_points_addon.live.receiver import Counters, PortInUse, Sample, SampleAssembler, UdpReceiver
 from dancing_points_addon.live.rows import CausalResampler, as_read
@@ -66,6 +68,38 @@ def _start_live(*args):
     return live, port
 
 
+def _stream_into(live, port, take, *args):
+    """``stream`` ``take`` (a file) to the ``live`` process on ``port`` (``args``
+    its other options), then Ctrl-C ``live`` a second after the last sample:
+    ``(stream's result, live's stdout, live's stderr)``."""
+    try:
+        sender = subprocess.run([sys.executable, "-m", "dancing_points_addon", "stream", str(take), "--port",
+                                 str(port), *map(str, args)], cwd=ROOT, env=_env(), capture_output=True, text=True,
+                                timeout=60)
+        assert sender.returncode == 0, sender.stderr
+        time.sleep(1.0)
+        live.send_signal(signal.SIGINT)
+        stdout, stderr = live.communicate(timeout=120)
+    finally:
+        if live.poll() is None:
+            live.kill()
+    assert live.returncode == 0, stderr
+    return sender, stdout, stderr
+
+
+def _offline_difference(out, tmp_path):
+    """``synthesize`` of the take ``live`` wrote beside ``out``: the largest
+    difference of the SPEC arrays from ``out`` (the shapes must agree), and the
+    offline duet."""
+    off = tmp_path / "offline.npz"
+    r = subprocess.run([sys.executable, "-m", "dancing_points_addon", "synthesize", str(out.with_suffix(".csv")),
+                        "-o", str(off)], cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    a, b = np.load(out), np.load(off)
+    assert a["leader_positions"].shape == b["leader_positions"].shape
+    return max(float(np.max(np.abs(a[k] - b[k]))) for k in SPEC_KEYS), b
+
+
 @pytest.fixture(scope="module")
 def take():
     return read_take(SAMPLE)
@@ -77,9 +111,11 @@ def synth():
 
 
 def _offline(synth, take_obj):
-    """``synthesize`` of a take as the command line reads it (written, read back)."""
+    """``synthesize`` of a take as the command line reads it (written, read back);
+    ``synth`` None: the networks of the take's role, as the command line loads them."""
     tk = parse_take_bytes(take_to_text(take_obj).encode(), "<live take>")
-    return Synthesizer(SynthesisOptions(models=MODELS, height=tk.height), nets=synth.nets).synthesize(tk), tk
+    nets = None if synth is None else synth.nets
+    return Synthesizer(SynthesisOptions(models=MODELS, height=tk.height), nets=nets).synthesize(tk), tk
 
 
 def _max_diff(a, b):
@@ -563,18 +599,8 @@ def test_stream_and_live_processes(tmp_path, fmt, drop, extra):
     duet ``live`` wrote is ``synthesize``'s of the take it wrote."""
     out = tmp_path / "live.npz"
     live, port = _start_live("--format", fmt, "-o", out)
-    try:
-        sender = subprocess.run([sys.executable, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--port",
-                                 str(port), "--format", fmt, "--rate", "72", "--duration", "10", "--drop", str(drop),
-                                 *extra], cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=60)
-        assert sender.returncode == 0, sender.stderr
-        time.sleep(1.0)
-        live.send_signal(signal.SIGINT)
-        stdout, stderr = live.communicate(timeout=120)
-    finally:
-        if live.poll() is None:
-            live.kill()
-    assert live.returncode == 0, stderr
+    sender, stdout, _ = _stream_into(live, port, SAMPLE, "--format", fmt, "--rate", "72", "--duration", "10",
+                                     "--drop", drop, *extra)
     sent, samples, dropped = map(int, _SENT.search(sender.stdout).groups())
     received, used, late, malformed, ignored, lost = map(int, _RECEIVED.search(stdout).groups())
     med, p99, smed, sp99 = map(float, _LATENCY.search(stdout).groups())
@@ -594,14 +620,8 @@ def test_stream_and_live_processes(tmp_path, fmt, drop, extra):
     tk = read_take(csv)
     assert tk.meta["devices"] == "joints" and tk.meta["role"] == "leader"
     assert 9.0 < tk.time[-1] < 11.5
-    off = tmp_path / "offline.npz"
-    r = subprocess.run([sys.executable, "-m", "dancing_points_addon", "synthesize", str(csv), "-o", str(off)],
-                       cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
-    a, b = np.load(out), np.load(off)
-    assert a["leader_positions"].shape == b["leader_positions"].shape
-    worst = max(float(np.max(np.abs(a[k] - b[k]))) for k in SPEC_KEYS)
-    print(f"live duet vs synthesize of its take: {a['leader_positions'].shape[0]} frames, max difference {worst:g}")
+    worst, b = _offline_difference(out, tmp_path)
+    print(f"live duet vs synthesize of its take: {b['leader_positions'].shape[0]} frames, max difference {worst:g}")
     assert worst <= TOL
 
 
@@ -662,29 +682,13 @@ def test_metadata_survives_a_lossy_link(tmp_path):
     with no warning, and the duet is ``synthesize``'s of the recorded take."""
     out = tmp_path / "lossy.npz"
     live, port = _start_live("--format", "vmc", "-o", out)
-    try:
-        sender = subprocess.run([sys.executable, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--port",
-                                 str(port), "--format", "vmc", "--rate", "72", "--duration", "5", "--drop", "0.9",
-                                 "--seed", "0"], cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=60)
-        assert sender.returncode == 0, sender.stderr
-        time.sleep(1.0)
-        live.send_signal(signal.SIGINT)
-        stdout, stderr = live.communicate(timeout=120)
-    finally:
-        if live.poll() is None:
-            live.kill()
-    assert live.returncode == 0, stderr
+    sender, stdout, stderr = _stream_into(live, port, SAMPLE, "--format", "vmc", "--rate", "72", "--duration", "5",
+                                          "--drop", "0.9", "--seed", "0")
     print(sender.stdout, stdout)
     assert "devices joints" in stdout and "warning" not in stdout + stderr
     tk = read_take(out.with_suffix(".csv"))
     assert tk.meta["devices"] == "joints" and tk.meta["role"] == "leader"
-    off = tmp_path / "offline.npz"
-    r = subprocess.run([sys.executable, "-m", "dancing_points_addon", "synthesize", str(out.with_suffix(".csv")),
-                        "-o", str(off)], cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
-    a, b = np.load(out), np.load(off)
-    assert a["leader_positions"].shape == b["leader_positions"].shape
-    assert max(float(np.max(np.abs(a[k] - b[k]))) for k in SPEC_KEYS) <= TOL
+    assert _offline_difference(out, tmp_path)[0] <= TOL
 
 
 def test_announced_metadata_lost_on_the_way_is_waited_for(take, synth):
@@ -750,9 +754,113 @@ def test_metadata_that_never_comes_is_waited_for_a_bounded_time(take, synth, ann
     if announce:
         assert len(s.warnings) == 1, s.warnings
         w = s.warnings[0]
-        assert w.startswith("warning:") and "(devices, height_m)" in w and "devices openxr (the vmc default)" in w
-        assert "height 1.6" in w and "(estimated)" in w
+        assert w.startswith("warning:") and "(devices, height_m, role)" in w and "devices openxr (the vmc default)" in w
+        assert "height 1.6" in w and "(estimated)" in w and w.endswith("role leader (the default)")
     else:
         assert s.warnings == []
     off, _ = _offline(synth, res.take)
     assert max(_max_diff(res.duet, off).values()) <= TOL
+
+
+# --------------------------------------------------------------------------- the stream's role
+
+@pytest.fixture(scope="module")
+def her_take(salsa_dir):
+    """Her three points (the follower of CMU salsa 61_10, 60 Hz) for 5 s: a ``role=follower`` take."""
+    her = load_amc(salsa_dir / "61_10.amc")
+    tk = take_from_motion(her)
+    n = int(5 * her.fps)
+    return Take(tk.time[:n].copy(), tk.positions[:n].copy(), tk.quats[:n].copy(), {"role": "follower"})
+
+
+def test_the_streams_role_switches_the_networks_before_the_duet(her_take):
+    """A ``role=follower`` take sent as ``stream`` sends it (the metadata and
+    their keys) to a session given no role: at the calibration the synthesizer
+    takes the follower's networks (checked and loaded when the session was
+    made), before the first frame; the rows that arrive during the switch (made
+    slow here: 0.2 s on the session's clock) are caught up, not timed. The take
+    says ``role=follower``, the duet's ``tracked_role`` too, and it is
+    ``synthesize``'s of the take."""
+    t, pos, quats = stream_rows(her_take, 72.0)
+    n = 72 * 3
+    now = [0.0]
+    s = LiveSession(LiveOptions(source="vmc", models=MODELS), clock=lambda: now[0])
+    assert s.synth.role == "leader"
+    switch, real = s.synth.set_role, []
+
+    def slow_switch(role):
+        t0 = time.perf_counter()
+        switch(role)
+        real.append(time.perf_counter() - t0)
+        now[0] += 0.2
+
+    s.synth.set_role = slow_switch
+    meta = {"devices": "joints", "role": "follower"}
+    asm = SampleAssembler(P.VmcDecoder(), s.feed)
+    for i in range(n):
+        arrival = 100.0 + float(t[i])
+        now[0] = max(now[0], arrival)  # a sample is read when it comes, or once the loop is free
+        (d,) = P.sample_datagrams("vmc", i, float(t[i]), pos[i], quats[i], meta, announce=tuple(meta))
+        asm.datagram(d, arrival)
+        if s.calibration is None:
+            assert s.synth.role == "leader" and not s._frames["lp"]
+    assert s.synth.role == "follower" and s.calibration.role == "follower" and s.warnings == []
+    assert s.role_switch_s == pytest.approx(0.2, abs=1e-6) and len(real) == 1
+    print(f"\nswitch to the follower's networks (preloaded): {real[0] * 1000:.2f} ms")
+    assert s.latency and max(v for _, v in s.latency) < 1e-9  # the rows that waited for the switch: not timed
+    assert min(k for k, _ in s.latency) / 30.0 >= s._calibrated_t + 0.2 - 1 / 30.0
+    res = s.finish()
+    assert res.take.meta["role"] == "follower" and res.duet.tracked_role == "follower"
+    assert str(res.duet.arrays()["tracked_role"]) == "follower"
+    off, _ = _offline(None, res.take)
+    assert off.tracked_role == "follower"
+    assert max(_max_diff(res.duet, off).values()) <= TOL
+
+
+@pytest.mark.parametrize("role", [None, "leader"])
+def test_live_reads_the_role_the_stream_says(tmp_path, her_take, role):
+    """``stream`` of her ``role=follower`` take to ``live``: without ``--role``
+    her points are the follower's (the take and the duet say so, and the duet
+    is ``synthesize``'s of the take); ``--role leader`` wins with one warning."""
+    src = tmp_path / "her.csv"
+    src.write_text(take_to_text(her_take))
+    out = tmp_path / "her_live.npz"
+    live, port = _start_live("--format", "osc", "-o", out, *(("--role", role) if role else ()))
+    _, stdout, stderr = _stream_into(live, port, src, "--format", "osc", "--duration", "3")
+    print(stdout)
+    used = role or "follower"
+    warnings = [line for line in (stdout + stderr).splitlines() if "warning" in line]
+    assert warnings == ([] if role is None else
+                        ["warning: the stream says role=follower; its points are read as the leader's "
+                         "(the role given wins)"])
+    assert f"{used} tracked" in stdout
+    csv = out.with_suffix(".csv")
+    assert read_take(csv).meta["role"] == used
+    assert str(np.load(out)["tracked_role"]) == used
+    worst, b = _offline_difference(out, tmp_path)
+    assert str(b["tracked_role"]) == used and worst <= TOL
+
+
+def test_a_follower_stream_without_her_models_is_one_clear_error(tmp_path, her_take):
+    """A models folder without ``follower/``: a session given no role starts
+    (a leader's stream needs none of it), and a ``role=follower`` stream stops
+    it at the calibration, before any frame, with one line naming what is
+    missing; a leader's stream to the same folder dances."""
+    models = tmp_path / "models"
+    models.mkdir()
+    for f in os.listdir(MODELS):
+        if f.endswith(".onnx"):
+            os.symlink(os.path.join(MODELS, f), models / f)
+    t, pos, quats = stream_rows(her_take, 60.0)
+    for role in ("follower", None):
+        s = LiveSession(LiveOptions(source="osc", models=str(models)))
+        meta = {"devices": "joints", "height_m": "1.6", "floor_y": "0", **({"role": role} if role else {})}
+        s.feed(Sample(99.0, {}, meta=meta))
+        if role is None:
+            _feed(s, t[:30], pos, quats)
+            assert s.calibration.role == "leader" and s._frames["lp"]
+            continue
+        with pytest.raises(UserError, match=r"stream's take is a follower's \(role=follower\).*no models for a "
+                                            r"follower's take here \(missing follower"):
+            _feed(s, t[:30], pos, quats)
+        assert not s._frames["lp"]

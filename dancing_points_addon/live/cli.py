@@ -121,7 +121,7 @@ def cmd_live(args) -> int:
     cal = calibration_options(args)
     options = LiveOptions(source=args.format, height=args.height, floor_y=cal["floor_y"], devices=cal["devices"],
                           head_offset=cal["head_offset"], hand_offset=cal["hand_offset"],
-                          role=args.role or "leader",
+                          role=args.role,  # None: the stream's role, else leader (the session checks both)
                           models=args.models, threads=args.threads, follow_devices=cal["follow_devices"])
     counters = Counters()
     sink = []  # the session, once its networks are loaded (the port is taken first: a clear error at once)

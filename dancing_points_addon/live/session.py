@@ -29,7 +29,13 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
    :data:`META_WAIT_S` seconds past the calibration window; then the
    calibration goes on without it and says so (:attr:`LiveSession.warnings`).
    A sender that announces nothing (any other VMC or OSC sender) is not waited
-   for.
+   for. The tracked dancer's ``role`` (SPEC §3) is the option's, else the
+   stream's, else ``leader``; it is one of the keys waited for, and a role
+   other than the synthesizer's switches it to that role's networks
+   (preloaded, :meth:`LiveSession.__init__`) before the first frame; the rows
+   that arrive meanwhile are caught up as those before the calibration are (no
+   latency counted). A role given that the stream contradicts wins, with a
+   warning.
 4. **frames**: each row is read as the calibration says, as
    :func:`~..calibration.apply_calibration` reads a take, then resampled
    causally to 30 Hz (:class:`.rows.CausalResampler`: the frames of
@@ -65,7 +71,7 @@ META_WAIT_S = 2.0  # announced metadata not yet come: the calibration waits this
 # the stream's metadata keys the calibration reads, and the option that overrides each
 CALIBRATION_META = {"devices": "devices", "height_m": "height", "floor_y": "floor_y",
                     "head_offset_m": "head_offset", "lhand_offset_m": "hand_offset",
-                    "rhand_offset_m": "hand_offset"}
+                    "rhand_offset_m": "hand_offset", "role": "role"}
 
 
 @dataclass(frozen=True)
@@ -75,8 +81,8 @@ class LiveOptions:
     (the stream's metadata, else estimated from the first ``calibration_s``
     seconds); ``devices``: SPEC §3 devices of the poses (None: the stream's
     metadata, else :data:`SOURCE_DEVICES`); ``role``: whose points these are
-    (passed to the take's metadata); ``gap_s``: a device unheard for longer is
-    lost; ``record_predictions``: keep the mapping's predictions and the planted
+    (SPEC §3; None: the stream's ``role``, else ``leader``); ``gap_s``: a
+    device unheard for longer is lost; ``record_predictions``: keep the mapping's predictions and the planted
     feet (for Blender's method view)."""
 
     source: str = "vmc"
@@ -85,7 +91,7 @@ class LiveOptions:
     devices: str | None = None
     head_offset: tuple | None = None
     hand_offset: tuple | None = None
-    role: str = "leader"
+    role: str | None = None
     calibration_s: float = 1.0
     gap_s: float = 0.1
     models: str | None = None
@@ -129,7 +135,7 @@ class LiveSession:
 
     def __init__(self, options: LiveOptions, synthesizer=None, counters: Counters | None = None,
                  clock=time.perf_counter, describe: str = ""):
-        if options.role not in ROLES:
+        if options.role is not None and options.role not in ROLES:
             raise UserError(f"role {options.role!r} cannot be streamed yet (roles: {', '.join(ROLES)})")
         if synthesizer is None:
             from ..runtime import Synthesizer
@@ -164,6 +170,19 @@ class LiveSession:
         self._stop = threading.Event()
         self.error = None
         self._lock = threading.Lock()  # feed/tick/finish: one at a time
+        self._live_after = -math.inf  # rows that arrived before this clock time are caught up (a role switch)
+        self.role_switch_s = None  # seconds the switch to the stream's role took (None: none made)
+        self._role_warned = False
+        self._unavailable = {}  # role -> why its networks cannot be used (checked up front)
+        if options.role is None:  # the stream may name either role: the other's networks checked and loaded now
+            from ..nets import check_models
+
+            for role in ROLES:
+                if role != synthesizer.role:
+                    try:
+                        check_models(synthesizer.options.models, synthesizer.options.threads, role)
+                    except UserError as exc:  # needed only if the stream says this role
+                        self._unavailable[role] = str(exc)
 
     # -- input -------------------------------------------------------------------
     def put(self, sample: Sample) -> None:
@@ -330,7 +349,45 @@ class LiveSession:
             except (ValueError, UserError):
                 continue
         meta.setdefault("devices", SOURCE_DEVICES.get(self.options.source, "joints"))
+        meta["role"] = self.role()
         return meta
+
+    def stream_role(self):
+        """The ``role`` the stream's metadata say (None: none, or not a role)."""
+        v = self.stream_meta.get("role")
+        return v if v in ROLES else None
+
+    def role(self) -> str:
+        """The tracked dancer's role: the calibration's once made; before, the
+        option's, else the stream's, else ``leader``."""
+        if self.calibration is not None:
+            return self.calibration.role
+        return self.options.role or self.stream_role() or "leader"
+
+    def _warn_role(self) -> None:
+        """Once: the stream says another role than the one read (a role given
+        wins; one that came after the duet started is too late)."""
+        said = self.stream_meta.get("role")
+        if self._role_warned or said in (None, "") or said == self.role():
+            return
+        self._role_warned = True
+        why = ("not a role" if said not in ROLES else "the role given wins" if self.options.role
+               else "it came after the duet had started")
+        self.warnings.append(f"warning: the stream says role={said}; its points are read as the "
+                             f"{self.role()}'s ({why})")
+
+    def _switch_role(self, role) -> None:
+        """The synthesizer's networks for ``role``, before any frame (timed)."""
+        if role in self._unavailable:
+            raise UserError(f"the stream's take is a {role}'s (role={role}), whose networks cannot be used: "
+                            f"{self._unavailable[role]}")
+        t0 = self.clock()
+        try:
+            self.synth.set_role(role)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        self._live_after = self.clock()
+        self.role_switch_s = self._live_after - t0
 
     def _calibrate(self, n) -> None:
         """Calibrate on the first ``n`` rows (as a take: the options, the stream's
@@ -338,14 +395,18 @@ class LiveSession:
         read the rows so far into frames."""
         c = self.synth.calibrate(self.rows.take(n, self._meta()))
         meta = c.meta()
-        self.calibration = Calibration(c.devices, float(meta["height_m"]), c.height_source, float(meta["floor_y"]),
-                                       c.floor_source, c.offsets)
-        self.synth.set_calibration(self.calibration)
+        calibration = Calibration(c.devices, float(meta["height_m"]), c.height_source, float(meta["floor_y"]),
+                                  c.floor_source, c.offsets, c.role)
+        if c.role != self.synth.role:
+            self._switch_role(c.role)
+        self.calibration = calibration
+        self.synth.set_calibration(calibration)
         self._catchup = n  # the rows before: read into frames at once, not live
         self._calibrated_t = float(self.rows.time[n - 1])
         missing = self.missing_meta()
         if missing:
             self._warn_missing(missing, self._calibrated_t)
+        self._warn_role()
 
     def _warn_missing(self, missing, t) -> None:
         c = self.calibration
@@ -358,6 +419,8 @@ class LiveSession:
             said.append(f"floor at y = {c.floor_y:+.3f} m ({c.floor_source})")
         if any(k.endswith("_offset_m") for k in missing):
             said.append("the default body offsets")
+        if "role" in missing:
+            said.append(f"role {c.role} (the default)")
         self.warnings.append(f"warning: the sender's take metadata ({', '.join(missing)}) had not come "
                              f"{t:.1f} s into the take (lost on the way?); calibrated without it: "
                              f"{', '.join(said)}")
@@ -378,7 +441,8 @@ class LiveSession:
             p, q = read.positions[0], read.quats[0]
             valid = np.isfinite(p).all(-1) & np.isfinite(q).all(-1)
             for k, pk, qk, ok in self.resampler.add(rows.time[i], p, q, valid):
-                self._step(k, pk, qk, ok, rows.arrival[i] if i >= self._catchup else None)
+                live = i >= self._catchup and rows.arrival[i] >= self._live_after
+                self._step(k, pk, qk, ok, rows.arrival[i] if live else None)
             self._done = i + 1
             if budget_s is not None and self._done < self._catchup and self.clock() - t0 >= budget_s:
                 break
@@ -431,8 +495,7 @@ class LiveSession:
     # -- the end -------------------------------------------------------------------------
     def take_meta(self) -> dict:
         c = self.calibration
-        meta = dict(c.meta())
-        meta["role"] = self.options.role
+        meta = dict(c.meta())  # (with the role the duet was made for)
         for key, v in zip(("head_offset_m", "lhand_offset_m", "rhand_offset_m"),
                           (c.offsets.head, c.offsets.lhand, c.offsets.rhand)):
             if v is not None:
@@ -459,6 +522,7 @@ class LiveSession:
                                 if self.t_first is None else "the recording is too short (fewer than 2 samples)")
             if self.calibration is None:
                 self._calibrate(n)
+            self._warn_role()  # (a role that came after the calibration)
             self._work(None)
             times, pos, quat = rows.time[:n], rows.pos[:n], rows.quat[:n]
             with np.errstate(invalid="ignore", divide="ignore"):
@@ -490,4 +554,4 @@ class LiveSession:
         planted = np.array(f["planted"][:T], dtype=bool) if self.record else None
         return Duet(np.arange(T) / NET_FPS, stack("lp"), stack("lr"), stack("lc"), stack("fp"), stack("fr"),
                     stack("fc"), bone_vectors=self.synth.output_bone_vectors(), predictions=preds,
-                    planted=planted, calibration=c)
+                    planted=planted, calibration=c, tracked_role=c.role)
