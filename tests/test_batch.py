@@ -329,6 +329,10 @@ def test_report_option_and_name_clashes(takes, tmp_path):
     assert files["take.csv"]["output"] == str(out / "take_csv.npz")
     assert files["take.bvh"]["output"] == str(out / "take_bvh.npz")
     assert sorted(os.listdir(out)) == ["take_bvh.npz", "take_csv.npz"]
+    # a report that cannot be written there is refused before any work (it used to run every take, exit 0)
+    res = run_batch(d, tmp_path / "out2", "npz", "--report", "/proc/dp_report.json")
+    assert res.returncode == 2 and "cannot write the report there" in res.stderr, res.stdout + res.stderr
+    assert not (tmp_path / "out2").exists()
 
 
 # --------------------------------------------------------------------------- stopping
@@ -497,6 +501,19 @@ def _fake_args(tmp_path, inputs, **kw):
              input_fps=None, asf=None, height=None, no_foot_lock=False, no_hand_ik=False, no_progress=True)
     d.update(kw)
     return argparse.Namespace(**d)
+
+
+def test_a_report_that_cannot_be_written_fails_the_run(tmp_path, capsys, monkeypatch):
+    """Every take converted, but the report not written at the end (say the
+    disk filled since the check): the run says so and exits 1, not 0."""
+    (tmp_path / "a.csv").write_text("")
+
+    def full(path, data):
+        raise batch.InputError(path, "cannot write (No space left on device)")
+
+    monkeypatch.setattr(batch, "write_report", full)
+    rc = batch.run(_fake_args(tmp_path, [tmp_path / "a.csv"]), worker_cmd=[sys.executable, "-c", FAKE_WORKER])
+    assert rc == 1 and "cannot write the report" in capsys.readouterr().err
 
 
 def test_parent_removes_what_a_dead_worker_left(tmp_path, capsys):

@@ -185,7 +185,8 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
         print(f"error: {outcome}; no partial outputs were left; re-run with --resume to convert the rest",
               file=err)
         return EXIT_TERMINATED if outcome == "terminated" else EXIT_INTERRUPTED
-    return EXIT_FAILURE if report["counts"]["failed"] else EXIT_OK
+    # a report that could not be written (checked before the work; the disk may fill since) fails the run
+    return EXIT_FAILURE if report["counts"]["failed"] or report_path is None else EXIT_OK
 
 
 def _run_planned(args, entries, out_dir, fmt, jobs, model_dir, report_path, worker_cmd, cluster, out, err,

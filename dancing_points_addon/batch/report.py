@@ -14,6 +14,7 @@ from __future__ import annotations
 import collections
 import json
 import os
+import tempfile
 
 from ..errors import InputError
 
@@ -77,3 +78,10 @@ def check_report_path(path, overwrite=False, explicit=True) -> None:
     if os.path.lexists(path) and not overwrite and not is_report(path):
         raise InputError(path, f"{flag}exists and is not a Dancing Points batch report (use --overwrite to "
                                f"replace it, or choose another --report path)")
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(folder):  # (the output folder may be made later; its own check is the outputs')
+        try:  # a file made and removed: what writing the report at the end will need (os.access trusts root)
+            with tempfile.NamedTemporaryFile(dir=folder, prefix=".dp_report_probe_"):
+                pass
+        except OSError as exc:
+            raise InputError(path, f"{flag}cannot write the report there ({exc.strerror or exc})") from None
