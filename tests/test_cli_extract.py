@@ -46,6 +46,12 @@ def test_extract_amc_options(tmp_path):
     assert take.n_frames == ref.n_frames
     assert np.allclose(np.diff(take.time), 1 / 60)  # 120 Hz clip declared 60 Hz
     assert np.abs(take.positions[:, 0] - ref.positions[:, 15]).max() < 1e-6
+    # a salsa take renamed: its rate is still its subject's (60 Hz, from 60.asf), not the 120 Hz default
+    shutil.copy(SALSA / "60.asf", work / "60.asf")
+    shutil.copy(SALSA / "60_08.amc", work / "my take.amc")
+    res = run_cli("extract", work / "my take.amc", "-o", out)
+    assert res.returncode == 0, res.stderr
+    assert np.allclose(np.diff(read_take(out).time), 1 / 60)
 
 
 def test_extract_bvh(tmp_path, salsa_motion):

@@ -340,13 +340,17 @@ def load_amc(amc_path, asf_path=None, fps: float | None = None) -> Motion:
     glob, starts = forward_kinematics(skel.parents, offsets, root_t, local)
     ends = starts + np.einsum("tjab,jb->tja", glob, vecs)
     if fps is None:
-        fps = default_fps(amc_path)
+        fps = default_fps(amc_path, asf_path)
     return Motion(ends[:, order], glob[:, order], float(fps), vecs[order], amc_path,
                   {"asf": str(asf_path)})
 
 
-def default_fps(amc_path) -> float:
-    subject = os.path.basename(str(amc_path)).split("_")[0]
+def default_fps(amc_path, asf_path=None) -> float:
+    """The CMU database's rate of a take: 60 Hz for the salsa subjects 60 and 61,
+    else 120 Hz. The subject is the AMC name's (``60_08.amc``), else, for an AMC
+    renamed, the ASF's (``60.asf``), so a copy under another name plays at its speed."""
+    m = re.match(r"(\d+)_", os.path.basename(str(amc_path)))
+    subject = m.group(1) if m else os.path.splitext(os.path.basename(str(asf_path or "")))[0]
     return 60.0 if subject in ("60", "61") else 120.0
 
 
