@@ -16,6 +16,7 @@ import re
 import unicodedata
 
 from .errors import UserError, error_message, one_line
+from .formats.limits import FLOOR_RANGE_M
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
 # Set to "1" before numpy loads (the benchmark, batch workers): one BLAS/OpenMP thread.
@@ -173,8 +174,8 @@ def floor_metres(text: str) -> float:
         v = float(text)
     except ValueError:
         v = math.nan
-    if not (math.isfinite(v) and abs(v) <= 1.0):
-        raise argparse.ArgumentTypeError(f"must be a height in metres within ±1, got {text!r}")
+    if not (math.isfinite(v) and abs(v) <= FLOOR_RANGE_M):
+        raise argparse.ArgumentTypeError(f"must be a height in metres within ±{FLOOR_RANGE_M:g}, got {text!r}")
     return v
 
 

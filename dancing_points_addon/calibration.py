@@ -29,6 +29,7 @@ import numpy as np
 from .errors import InputError
 from .formats.devices import (DEVICE_KINDS, DeviceOffsets, check_devices, offsets_for, openxr_to_points,
                               points_to_openxr)
+from .formats.limits import FLOOR_RANGE_M
 from .formats.take import Take
 from .representation import root_from_head, to_local, to_world
 from .resample import NET_FPS, resample_plan, tracked_after_resampling
@@ -41,7 +42,6 @@ TRAIN_HEIGHT = 1.70
 TRAIN_HEAD_HEIGHT = 1.530
 HEAD_PERCENTILE = 90.0
 ESTIMATE_RANGE_M = (1.0, 2.3)  # an estimate beyond these is clipped (a child to a very tall adult)
-FLOOR_RANGE_M = 1.0
 ROLES = ("leader", "follower")  # an estimated floor further than this from y = 0 is refused as a wrong height
 
 

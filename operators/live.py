@@ -18,8 +18,10 @@ background mode; :func:`tick` is the function to call there.
 .blend (in the temporary folder while the file is unsaved), imported as a take
 collection (``dancing_points.import_take``), and, optionally, the duet the
 loop made is baked on it: the duet ``synthesize`` makes of that file. The live
-armatures are removed. Loading another file (or disabling the extension) while
-live stops it the same way, keeping the take file only.
+armatures are removed. When the duet cannot be made (the calibration or the
+synthesis fails), Stop still writes every row received and says where. A
+failing tick, loading another file (or disabling the extension) while live
+stop it the same way, keeping the take file only.
 """
 
 import os
@@ -32,10 +34,11 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 
 from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon.errors import UserError, error_message
+from ..dancing_points_addon.formats.limits import FLOOR_RANGE_M, HEIGHT_RANGE_M
 from ..dancing_points_addon.live import OSC_PORT, ROLES, VMC_PORT
 from ..dancing_points_addon.live.xr import read_xr_state, xr_to_motion
 from . import bake
-from .props import ROLE_PROP
+from .props import ROLE_PROP, check_dancer
 
 TICK_S = 1.0 / 120.0  # the timer's interval: poses at most this late after their frame
 PUMP_BUDGET_S = 0.010  # synthesis a tick at most (frames left over are made on the next ticks)
@@ -69,14 +72,17 @@ class DP_LiveSettings(bpy.types.PropertyGroup):
     role: EnumProperty(name="Role", default=ROLES[0],
                        items=tuple((r, r.capitalize(), "The stream carries the {:s}'s head and hands".format(r))
                                    for r in ROLES))
-    height: FloatProperty(name="Dancer Height", default=0.0, min=0.0, soft_max=2.5, unit='LENGTH', precision=3,
-                          description="The dancer's standing height (0: estimate it from the first second "
-                                      "before the duet starts)")
+    height: FloatProperty(name="Dancer Height", default=0.0, min=0.0, max=HEIGHT_RANGE_M[1], soft_max=2.5,
+                          unit='LENGTH', precision=3,
+                          description="The dancer's standing height, {:g} to {:g} m (0: estimate it from the "
+                                      "first second before the duet starts)".format(*HEIGHT_RANGE_M))
     use_floor_y: BoolProperty(name="Floor Given", default=False,
                               description="The real floor's height is known (else: estimated when the height "
                                           "is given, else 0)")
-    floor_y: FloatProperty(name="Floor Height", default=0.0, soft_min=-0.5, soft_max=0.5, unit='LENGTH',
-                           precision=3, description="Height of the real floor in the stream's frame")
+    floor_y: FloatProperty(name="Floor Height", default=0.0, min=-FLOOR_RANGE_M, max=FLOOR_RANGE_M, soft_min=-0.5,
+                           soft_max=0.5, unit='LENGTH', precision=3,
+                           description="Height of the real floor in the stream's frame, within ±{:g} m".format(
+                               FLOOR_RANGE_M))
     left_serial: StringProperty(name="Left Hand", default="",
                                 description="VMC: the left hand's serial (empty: guessed)")
     right_serial: StringProperty(name="Right Hand", default="",
@@ -107,10 +113,16 @@ class LiveRun:
 
 
 _RUN = None
+_LAST_ERROR = ""  # why the last session stopped on its own (a failing tick), and where its take went
 
 
 def running():
     return _RUN
+
+
+def last_error():
+    """The line saying why the last session stopped on its own ("" when it did not)."""
+    return _LAST_ERROR
 
 
 def xr_session_state(context):
@@ -123,6 +135,7 @@ def xr_session_state(context):
 def _options(settings, prefs_threads=1, models=None):
     from ..dancing_points_addon.live.session import LiveOptions
 
+    check_dancer("Live", settings.height, settings.use_floor_y, settings.floor_y)
     source = settings.source.lower()
     return LiveOptions(source=source, height=settings.height or None,
                        floor_y=settings.floor_y if settings.use_floor_y else None, role=settings.role,
@@ -146,9 +159,10 @@ def _build_rigs(context, run, synth):
 
 def start(context, settings):
     """Start a live session with ``settings`` (``Scene.dancing_points_live``)."""
-    global _RUN
+    global _RUN, _LAST_ERROR
     if _RUN is not None:
         raise UserError("a live session is already running: stop it first")
+    _LAST_ERROR = ""
     from ..dancing_points_addon.live.protocol import decoder_for
     from ..dancing_points_addon.live.receiver import Counters, SampleAssembler, UdpReceiver
     from ..dancing_points_addon.live.session import LiveSession
@@ -267,11 +281,26 @@ def _timer():
     try:
         return tick()
     except Exception as exc:  # noqa: BLE001 - a failing tick stops the session, the take kept
-        print("Dancing Points live: " + error_message(exc, "the live tick failed"))
-        if _RUN is not None:
-            _RUN.error = exc
-            _RUN.timer = False
+        _stop_on_error(exc)
         return None
+
+
+def _stop_on_error(exc):
+    """A tick failed (e.g. the calibration: a height that puts the floor out of
+    reach): stop the session, keeping the take file (not imported: this runs
+    in a timer), and keep the one line to show (:func:`last_error`)."""
+    global _LAST_ERROR
+    msg = error_message(exc, "the live tick failed")
+    try:
+        out = stop(keep=True, collection=False)
+        if out is not None:
+            msg += "; Live stopped, the take is in " + out["csv"]
+    except Exception as stop_exc:  # noqa: BLE001 - it says where the rows went, when they were kept
+        said = error_message(stop_exc, "the take could not be kept")
+        msg = said if said.startswith(msg) else msg + "; " + said
+    _LAST_ERROR = msg
+    print("Dancing Points live: " + msg)
+    _redraw(bpy.context)
 
 
 def start_timer(run):
@@ -306,7 +335,9 @@ def stop(context=None, keep=True, collection=True, bake_duet=None, folder=None):
     """Stop the session: no thread, socket or timer left. ``keep``: write the
     take file (``folder``, default :func:`take_folder`); ``collection``: import
     it as a take and (``bake_duet``, default the settings') bake the duet.
-    Returns ``{"csv", "take", "duet", "result"}`` or None."""
+    Returns ``{"csv", "take", "duet", "result"}`` or None. When the duet cannot
+    be made (calibration, synthesis), the rows received are written all the
+    same and a :class:`UserError` says why and where."""
     global _RUN
     run, _RUN = _RUN, None
     if run is None:
@@ -327,9 +358,19 @@ def stop(context=None, keep=True, collection=True, bake_duet=None, folder=None):
         return None
     from ..dancing_points_addon.formats.take import write_take
 
-    result = run.session.finish()
     name = "dancing_points_live_{:s}.csv".format(time.strftime("%Y%m%d-%H%M%S"))
     path = os.path.join(folder or take_folder(), name)
+    try:
+        result = run.session.finish()
+    except Exception as exc:
+        # The duet could not be made (the calibration or the synthesis failed):
+        # the rows received are written all the same, never lost with it.
+        raw = run.session.received_take()
+        if raw is None:
+            raise  # nothing to keep ("nothing recorded")
+        write_take(path, raw)
+        raise UserError("{:s}; Live stopped: the take ({:d} rows, no duet made) was saved to {:s}".format(
+            error_message(exc, "the live duet failed"), raw.n_frames, path)) from exc
     write_take(path, result.take)
     out = {"csv": path, "take": None, "duet": None, "result": result}
     if not collection:

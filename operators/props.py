@@ -7,9 +7,13 @@ Everything lives in ID properties (``Collection.dancing_points``,
 being disabled (as plain custom properties).
 """
 
+import math
+
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from ..dancing_points_addon.errors import InputError
+from ..dancing_points_addon.formats.limits import FLOOR_RANGE_M, HEIGHT_RANGE_M, check_height
 from .kinds import KIND_DUET, KIND_NONE, KIND_TAKE, is_duet, is_take
 from .stage import apply_camera_mode
 # ID property on the three take empties naming the device they carry.
@@ -38,8 +42,9 @@ class DP_CollectionSettings(bpy.types.PropertyGroup):
     source_type: StringProperty(name="Source Type", description="csv, amc, bvh or fbx")
     height: FloatProperty(
         name="Dancer Height",
-        description="Standing height of the tracked dancer, for calibration (0: estimate it from the take)",
-        default=0.0, min=0.0, soft_max=2.5, unit='LENGTH', precision=3,
+        description="Standing height of the tracked dancer, for calibration ({:g} to {:g} m; 0: estimate it from "
+                    "the take)".format(*HEIGHT_RANGE_M),
+        default=0.0, min=0.0, max=HEIGHT_RANGE_M[1], soft_max=2.5, unit='LENGTH', precision=3,
     )
     role: EnumProperty(
         name="Role", default='leader',
@@ -56,9 +61,10 @@ class DP_CollectionSettings(bpy.types.PropertyGroup):
     use_floor_y: BoolProperty(name="Floor Given", default=False,
                               description="The real floor's height in the take is known (else: estimated when "
                                           "the height is given, else 0)")
-    floor_y: FloatProperty(name="Floor Height", default=0.0, soft_min=-0.5, soft_max=0.5, unit='LENGTH', precision=3,
-                           description="Height of the real floor in the take's frame (a headset's floor "
-                                       "calibration can be off by centimetres)")
+    floor_y: FloatProperty(name="Floor Height", default=0.0, min=-FLOOR_RANGE_M, max=FLOOR_RANGE_M, soft_min=-0.5,
+                           soft_max=0.5, unit='LENGTH', precision=3,
+                           description="Height of the real floor in the take's frame, within ±{:g} m (a headset's "
+                                       "floor calibration can be off by centimetres)".format(FLOOR_RANGE_M))
     # what the last synthesis used (read only: shown in the panel)
     height_used: FloatProperty(name="Height Used", default=0.0, unit='LENGTH', precision=3,
                                description="The tracked dancer's height the last synthesis used")
@@ -137,6 +143,23 @@ def unregister():
     del bpy.types.Collection.dancing_points
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)
+
+
+# --------------------------------------------------------------------------- checks
+
+def check_dancer(where, height, use_floor_y, floor_y):
+    """The take's or Live's *Dancer Height* (0: estimated) and *Floor Height*
+    (when given) within the ranges the command line and the take reader allow
+    (``--height``, ``--floor-y``); else an :class:`InputError` naming ``where``
+    and the setting. The properties' own bounds do not suffice: a script, or a
+    file saved before they existed, can hold any value."""
+    h = float(height)
+    if h != 0.0:
+        check_height(where, h, what="Dancer Height")
+    if use_floor_y:
+        f = float(floor_y)
+        if not (math.isfinite(f) and abs(f) <= FLOOR_RANGE_M):
+            raise InputError(where, "Floor Height must be within ±{:g} m, got {:g}".format(FLOOR_RANGE_M, f))
 
 
 # --------------------------------------------------------------------------- lookups

@@ -21,7 +21,7 @@ from ..dancing_points_addon.formats.take import Take
 from ..dancing_points_addon.resample import NET_FPS
 from . import compat
 from .kinds import KIND_TAKE
-from .props import DEVICE_OBJECT_NAMES, DEVICE_PROP, DEVICES, GHOST_PROP, TRACKED_PROP, device_objects
+from .props import DEVICE_OBJECT_NAMES, DEVICE_PROP, DEVICES, GHOST_PROP, TRACKED_PROP, check_dancer, device_objects
 
 
 def build_take_collection(context, take30, name, frame_start=1, conv=bm.C, settings=None, frame_step=1.0):
@@ -198,6 +198,7 @@ def take_from_collection(context, coll):
     """The take held by a take collection, read from its empties' animation:
     a 30 Hz :class:`Take` in motion space (Blender Z up -> Y up)."""
     s = coll.dancing_points
+    check_dancer("take '{:s}'".format(coll.name), s.height, s.use_floor_y, s.floor_y)
     objs = device_objects(coll)
     missing = [DEVICE_OBJECT_NAMES[d] for d in DEVICES if d not in objs]
     if missing:

@@ -27,6 +27,8 @@ from .take_ghost import remove_ghost, build_amc_ghost, keep_ghost
 from .take_rig import read_rig_take
 
 FILE_TYPES = (".csv", ".bvh", ".fbx", ".amc")
+# Blender's last scene frame (MAXFRAME); scenes start at frame 0 or later
+MAX_FRAME = bpy.types.Scene.bl_rna.properties["frame_end"].hard_max
 
 
 def load_any(context, path, input_fps=0.0, height=0.0, axis_forward='-Z', axis_up='Y', units='AUTO', ghost=None):
@@ -67,7 +69,9 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
     filename_ext = ".csv"
     filter_glob: StringProperty(default="*.csv;*.bvh;*.fbx;*.amc", options={'HIDDEN'})
 
-    frame_start: IntProperty(name="Start Frame", description="Scene frame of the take's first sample", default=1)
+    frame_start: IntProperty(name="Start Frame", default=1, min=0, max=MAX_FRAME,
+                             description="Scene frame of the take's first sample (the whole take must end by "
+                                         "Blender's last frame, {:d})".format(MAX_FRAME))
     input_fps: FloatProperty(
         name="Input FPS", default=0.0, min=0.0, soft_max=240.0,
         description="Frame rate of the file's rows (0: from the file: its time column, BVH Frame Time, "
@@ -173,6 +177,12 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         # Keys in scene time: one scene frame per sample when the scene is set to 30 fps, else
         # the scene's rate / 30 (a 24 fps project keeps its rate and the take its real speed).
         step = 1.0 if self.update_scene_fps else (scene.render.fps / (scene.render.fps_base or 1.0)) / NET_FPS
+        span = int(np.ceil((take30.n_frames - 1) * step - 1e-6))  # scene frames from the first sample to the last
+        if self.frame_start + span > MAX_FRAME:
+            raise InputError(path, "the take's {:d} frames from Start Frame {:d} would end on frame {:d}, past "
+                                   "Blender's last frame {:d}: set Start Frame to at most {:d}".format(
+                                       take30.n_frames, self.frame_start, self.frame_start + span, MAX_FRAME,
+                                       MAX_FRAME - span))
         coll, objs = build_take_collection(context, take30, name, self.frame_start, conv, settings, step)
         try:
             if ghost:
@@ -191,7 +201,7 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
             scene.render.fps_base = 1.0
         if self.update_scene_duration:
             scene.frame_start = self.frame_start
-            scene.frame_end = self.frame_start + int(np.ceil((take30.n_frames - 1) * step - 1e-6))
+            scene.frame_end = self.frame_start + span
         scene.dancing_points.take = coll
         if estimated:
             self.report({'WARNING'}, "{:s}: the rig's rest pose is not a T-pose facing forward; the head "

@@ -850,3 +850,71 @@ def test_headset_take_import_calibration_on_the_take(files, tmp_path):
     # the import option overrides the file's devices
     coll2 = _import(xr, devices='joints')
     assert coll2.dancing_points.devices == 'joints'
+
+
+def test_take_height_and_floor_out_of_range_are_refused(files):
+    """The take's Dancer Height and Floor Height have the command line's ranges
+    (``--height``, ``--floor-y``): hard bounds on the properties, and a check
+    when the take is read for synthesis, for values a script or an older file
+    holds past the bounds (a floor of 1e6 m once reached the stage: a 47.8 GiB
+    checker floor)."""
+    from dancing_points_addon.calibration import FLOOR_RANGE_M
+    from dancing_points_addon.formats.limits import HEIGHT_RANGE_M
+
+    bsu.fresh_scene()
+    coll = _import(files["csv"])
+    s = coll.dancing_points
+    props = s.bl_rna.properties
+    assert props["height"].hard_min == 0.0 and props["height"].hard_max == HEIGHT_RANGE_M[1]
+    assert (props["floor_y"].hard_min, props["floor_y"].hard_max) == (-FLOOR_RANGE_M, FLOOR_RANGE_M)
+    s.use_floor_y, s.floor_y, s.height = True, 1e6, 50.0
+    assert s.floor_y == FLOOR_RANGE_M and s.height == HEIGHT_RANGE_M[1]  # clamped
+    s.floor_y, s.height = 0.0, 0.0
+    name = coll.name
+    for key, value, match in (
+            ("floor_y", 1e6, f"take '{name}': Floor Height must be within ±1 m, got 1e\\+06"),
+            ("floor_y", float("nan"), "Floor Height must be within ±1 m, got nan"),
+            ("height", 5.0, f"take '{name}': Dancer Height must be between 0.5 and 3 m, got 5$"),
+            ("height", 0.3, "Dancer Height must be between 0.5 and 3 m, got 0.3"),
+            ("height", -1.0, "Dancer Height must be between 0.5 and 3 m, got -1")):
+        s[key] = value  # as a script or an older file can: past the property's bounds
+        state = bsu.scene_state()
+        with pytest.raises(RuntimeError, match=match) as info:
+            bpy.ops.dancing_points.synthesize(model_dir=MODELS, take=name)
+        assert "\n" not in str(info.value).strip()
+        _assert_unchanged(state)
+        s[key] = 0.0
+    s.use_floor_y = False
+    s["floor_y"] = 1e6  # not given: not used, not checked
+    take_collection = import_from_extension("operators.take_collection")
+    assert "floor_y" not in take_collection.take_from_collection(bpy.context, coll).meta
+
+
+def test_import_start_frame_within_blenders_frames(files):
+    """Start Frame is a scene frame (0 or later, as a scene's start) whose take
+    ends by Blender's last frame (MAXFRAME): past it, one line naming the
+    largest Start Frame that fits, and nothing made (a start of 1e8 once
+    collapsed the keys to float32's steps and clamped the scene's range)."""
+    bsu.fresh_scene()
+    maxframe = bpy.types.Scene.bl_rna.properties["frame_end"].hard_max
+    prop = bpy.ops.dancing_points.import_take.get_rna_type().properties["frame_start"]
+    assert (prop.hard_min, prop.hard_max) == (0, maxframe)
+    T = resample_take(files["take"], 30.0).n_frames
+    state = bsu.scene_state()
+    for start in (100_000_000, maxframe - T + 2):
+        with pytest.raises(RuntimeError, match=f"would end on frame {min(start, maxframe) + T - 1}, past Blender's "
+                                               f"last frame {maxframe}: set Start Frame to at most "
+                                               f"{maxframe - T + 1}"):
+            bpy.ops.dancing_points.import_take(filepath=str(files["csv"]), frame_start=start)
+        _assert_unchanged(state)
+    coll = _import(files["csv"], frame_start=maxframe - T + 1)  # the last start that fits: every key its frame
+    scene = bpy.context.scene
+    assert (scene.frame_start, scene.frame_end) == (maxframe - T + 1, maxframe)
+    compat = import_from_extension("operators.compat")
+    take_collection = import_from_extension("operators.take_collection")
+    for obj in take_collection.device_objects(coll).values():
+        fc = compat.find_fcurve(*compat.assigned_action(obj), "location", 0)
+        assert [k.co[0] for k in fc.keyframe_points] == list(range(maxframe - T + 1, maxframe + 1))
+    bsu.fresh_scene()
+    coll = _import(files["csv"], frame_start=-50)  # before a scene's first frame: from frame 0
+    assert coll.dancing_points.frame_start == 0 and bpy.context.scene.frame_start == 0

@@ -17,6 +17,7 @@ import subprocess
 import sys
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -31,6 +32,7 @@ from dancing_points_addon.blender_math import C  # noqa: E402
 from dancing_points_addon.calibration import headset_take  # noqa: E402
 from dancing_points_addon.formats.take import Take, parse_take_bytes, read_take, take_to_text  # noqa: E402
 from dancing_points_addon.live import protocol as P  # noqa: E402
+from dancing_points_addon.live.receiver import Sample  # noqa: E402
 from dancing_points_addon.live.stream import stream_rows  # noqa: E402
 from dancing_points_addon.live.xr import motion_to_xr  # noqa: E402
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer  # noqa: E402
@@ -312,32 +314,34 @@ def test_loading_another_file_while_live_stops_it(live):
     assert read_take(kept).n_frames >= 30
 
 
+class _Layout:
+    """A panel's layout that logs what is drawn: ``(kind, name or text)``."""
+
+    def __init__(self, log):
+        self.log = log
+        self.use_property_split = self.use_property_decorate = False
+        self.enabled = self.active = True
+
+    def __getattr__(self, name):  # row, column, box
+        return lambda *a, **k: _Layout(self.log)
+
+    def prop(self, data, name, **_):
+        self.log.append(("prop", name))
+
+    def operator(self, op, **_):
+        self.log.append(("op", op))
+
+    def label(self, text="", **_):
+        self.log.append(("label", text))
+
+
 def test_live_panel_draws(live):
     panel = bpy.types.Panel.bl_rna_get_subclass_py("VIEW3D_PT_dancing_points_live")
     assert panel is not None
-
-    class Layout:
-        def __init__(self, log):
-            self.log = log
-            self.use_property_split = self.use_property_decorate = False
-            self.enabled = self.active = True
-
-        def __getattr__(self, name):  # row, column, box
-            return lambda *a, **k: Layout(self.log)
-
-        def prop(self, data, name, **_):
-            self.log.append(("prop", name))
-
-        def operator(self, op, **_):
-            self.log.append(("op", op))
-
-        def label(self, text="", **_):
-            self.log.append(("label", text))
-
     log = []
 
     class Fake:
-        layout = Layout(log)
+        layout = _Layout(log)
 
     panel.draw(Fake, bpy.context)
     assert ("op", "dancing_points.live_start") in log and ("prop", "port") in log
@@ -348,3 +352,81 @@ def test_live_panel_draws(live):
     assert ("op", "dancing_points.live_stop") in log
     assert any(k == "label" and t.startswith("Dropped 0") for k, t in log), log
     live.stop(keep=False)
+
+
+def test_start_refuses_a_height_or_floor_out_of_range(live):
+    """Live's Dancer Height and Floor Height have the command line's ranges: hard
+    bounds on the properties, and Start refuses in one line what a script or
+    an older file holds past them, before anything is built."""
+    from dancing_points_addon.calibration import FLOOR_RANGE_M
+    from dancing_points_addon.formats.limits import HEIGHT_RANGE_M
+
+    port = _free_port()
+    s = _settings('VMC', port)
+    props = s.bl_rna.properties
+    assert props["height"].hard_max == HEIGHT_RANGE_M[1]
+    assert (props["floor_y"].hard_min, props["floor_y"].hard_max) == (-FLOOR_RANGE_M, FLOOR_RANGE_M)
+    for key, value, match in (("height", 50.0, "Live: Dancer Height must be between 0.5 and 3 m, got 50"),
+                              ("height", 0.3, "Live: Dancer Height must be between 0.5 and 3 m, got 0.3"),
+                              ("floor_y", -50.0, "Live: Floor Height must be within ±1 m, got -50")):
+        _settings('VMC', port, floor=0.0)
+        s[key] = value  # past the property's bounds
+        with pytest.raises(RuntimeError, match=match):
+            bpy.ops.dancing_points.live_start()
+        _no_leftovers(live, port)
+
+
+def test_a_failing_calibration_keeps_the_take(live, tmp_path, monkeypatch):
+    """Dancer Height 3 m (in range, so Start accepts it) puts the floor of the
+    sample take more than 1 m down: the calibration fails on a tick. Stop
+    still writes every row received, and says where in one line; a failing
+    tick of the timer stops the session the same way (the panel says so)."""
+    hx = headset_take(read_take(SAMPLE), height=1.75)
+    t, pos, quats = stream_rows(hx, 72.0)
+    stand = _XrStandIn(False)
+    monkeypatch.setattr(live, "xr_session_state", lambda context: stand)
+    real_tick = live.tick
+    for by_timer in (False, True):
+        folder = tmp_path / ("timer" if by_timer else "stop")
+        folder.mkdir()
+        assert bpy.ops.wm.save_as_mainfile(filepath=str(folder / "scene.blend")) == {'FINISHED'}
+        live.start(bpy.context, _settings('XR', height=3.0))
+        fed = iter(range(len(t)))
+
+        def tick(context=None, now=None):
+            i = next(fed)
+            stand.loc, stand.rot = motion_to_xr(pos[i], quats[i])
+            return real_tick(context, now=500.0 + float(t[i]))
+
+        if by_timer:
+            monkeypatch.setattr(live, "tick", tick)
+            for n in range(1, 200):
+                if live._timer() is None:
+                    break
+            monkeypatch.setattr(live, "tick", real_tick)
+            message = live.last_error()
+        else:
+            with pytest.raises(Exception, match="with a height of 3.00 m the floor would lie"):
+                for n in range(1, 200):
+                    tick()
+            for _ in range(30):  # more rows after the failure (the stream goes on), read at Stop
+                i = next(fed)
+                live.running().session.put(Sample(500.0 + float(t[i]), {d: (pos[i][d], quats[i][d]) for d in range(3)}))
+                n += 1
+            with pytest.raises(RuntimeError) as info:
+                bpy.ops.dancing_points.live_stop()
+            message = str(info.value).strip()
+        _no_leftovers(live)
+        (csv,) = glob.glob(str(folder / "dancing_points_live_*.csv"))
+        assert "\n" not in message
+        assert message.endswith(f"Live stopped: the take ({n} rows, no duet made) was saved to {csv}"), message
+        assert "with a height of 3.00 m the floor would lie" in message
+        kept = read_take(csv)
+        assert kept.n_frames == n and kept.height == 3.0 and kept.meta["devices"] == "openxr"
+        assert np.allclose(kept.positions, pos[:n], atol=1e-8)
+        if by_timer:
+            assert not bpy.app.timers.is_registered(live._timer)
+            log = []
+            panel = bpy.types.Panel.bl_rna_get_subclass_py("VIEW3D_PT_dancing_points_live")
+            panel.draw(SimpleNamespace(layout=_Layout(log)), bpy.context)
+            assert ("label", message) in log

@@ -12,6 +12,7 @@ MAX_GAP_S = 10.0  # rows more than 10 s apart are bad input, not a gap to interp
 MAX_ABS_TIME_S = 1e10  # |time| in seconds; the Unix epoch (~1.7e9 s) fits, milliseconds do not
 INPUT_FPS_RANGE = (1.0, 1000.0)  # Hz: --input-fps, a BVH's Frame Time, a rig's frame rate
 HEIGHT_RANGE_M = (0.5, 3.0)  # metres: --height and a take's height_m (as argtypes.height_metres)
+FLOOR_RANGE_M = 1.0  # a floor given (take, option, setting) lies within this many metres of y = 0
 
 
 def check_rate(path, fps, line=None, what="input frame rate") -> float:

@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import InputError
 from .devices import META_OFFSET_KEYS, parse_offset
 from .files import atomic_output, open_regular
-from .limits import MAX_ABS_TIME_S, MAX_DURATION_S, MAX_GAP_S, check_height
+from .limits import FLOOR_RANGE_M, MAX_ABS_TIME_S, MAX_DURATION_S, MAX_GAP_S, check_height
 from ..rotations import axis_rotation, matrix_to_quat
 from ..skeleton import HEAD_BONE, TRACKED, Motion
 
@@ -370,8 +370,9 @@ def _parse_meta(path, lineno, text, meta):
             f = float(value)
         except ValueError:
             raise InputError(path, f"floor_y is not a number: {value!r}", lineno) from None
-        if not (np.isfinite(f) and abs(f) <= 1.0):
-            raise InputError(path, f"floor_y must be a height in metres within ±1, got {value!r}", lineno)
+        if not (np.isfinite(f) and abs(f) <= FLOOR_RANGE_M):
+            raise InputError(path, f"floor_y must be a height in metres within ±{FLOOR_RANGE_M:g}, got {value!r}",
+                             lineno)
         meta[key] = value
     elif key in META_OFFSET_KEYS:
         parse_offset(value, key, path, lineno)

@@ -59,6 +59,7 @@ import numpy as np
 
 from ..calibration import Calibration, apply_calibration
 from ..errors import UserError
+from ..formats.limits import FLOOR_RANGE_M
 from ..formats.take import Take
 from ..resample import NET_FPS, output_offsets
 from . import ROLES
@@ -173,6 +174,7 @@ class LiveSession:
         self._live_after = -math.inf  # rows that arrived before this clock time are caught up (a role switch)
         self.role_switch_s = None  # seconds the switch to the stream's role took (None: none made)
         self._role_warned = False
+        self._hold_calibration = False  # (rows read without calibrating: :meth:`received_take`)
         self._unavailable = {}  # role -> why its networks cannot be used (checked up front)
         if options.role is None:  # the stream may name either role: the other's networks checked and loaded now
             from ..nets import check_models
@@ -248,13 +250,17 @@ class LiveSession:
         seconds a call (the rest on the next calls: it never blocks long).
         Returns the rows still to read into frames."""
         with self._lock:
-            while True:
-                try:
-                    self._ingest(self._queue.get_nowait())
-                except queue.Empty:
-                    break
+            self._drain()
             self._silence(now)
             return self._work(budget_s)
+
+    def _drain(self) -> None:
+        """Read what was put and not yet read (under the lock)."""
+        while True:
+            try:
+                self._ingest(self._queue.get_nowait())
+            except queue.Empty:
+                break
 
     def _ingest(self, s: Sample) -> None:
         self._arrivals.append(s.time)
@@ -325,6 +331,8 @@ class LiveSession:
 
     def _can_calibrate(self, t) -> bool:
         o = self.options
+        if self._hold_calibration:
+            return False
         if self.missing_meta() and t < o.calibration_s + META_WAIT_S:
             return False  # announced and not come (lost on the way): it comes again
         return t >= o.calibration_s or (self._known("height_m", o.height) and self._known("floor_y", o.floor_y))
@@ -341,7 +349,7 @@ class LiveSession:
                     meta[key] = v
                 elif key == "height_m" and 0.5 <= float(v) <= 3.0:
                     meta[key] = float(v)
-                elif key == "floor_y" and abs(float(v)) <= 1.0:
+                elif key == "floor_y" and abs(float(v)) <= FLOOR_RANGE_M:
                     meta[key] = v
                 elif key in META_OFFSET_KEYS:
                     parse_offset(v, key)
@@ -509,14 +517,9 @@ class LiveSession:
         hand). A :class:`UserError` when nothing was recorded."""
         self.stop()
         with self._lock:
-            while True:  # what was put and not yet read (a caller that pumps)
-                try:
-                    self._ingest(self._queue.get_nowait())
-                except queue.Empty:
-                    break
+            self._drain()  # what was put and not yet read (a caller that pumps)
             rows = self.rows
-            valid = np.isfinite(rows.pos[:rows.n]).all(-1).any(-1) if rows.n else np.zeros(0, bool)
-            n = int(np.flatnonzero(valid)[-1]) + 1 if valid.any() else 0
+            n = self._recorded()
             if n < 2:
                 raise UserError("nothing recorded: no sample with the head and both hands tracked came"
                                 if self.t_first is None else "the recording is too short (fewer than 2 samples)")
@@ -534,6 +537,41 @@ class LiveSession:
             duet = self._duet(T)
             return LiveResult(take, duet, self.counters.snapshot(), self._latency_stats(0.0),
                               self._latency_stats(self._calibrated_t + 1.0))
+
+    def _recorded(self) -> int:
+        """Rows of the take: up to the last with a device tracked (under the lock)."""
+        rows = self.rows
+        valid = np.isfinite(rows.pos[:rows.n]).all(-1).any(-1) if rows.n else np.zeros(0, bool)
+        return int(np.flatnonzero(valid)[-1]) + 1 if valid.any() else 0
+
+    def received_take(self) -> Take | None:
+        """Every row received, as the take file keeps them, whether or not a
+        duet can be made: what a caller keeps when :meth:`finish` failed (the
+        calibration or the synthesis). The metadata are the calibration's when
+        it was made, else the options' and the stream's own values a take file
+        may carry. None: fewer than two rows with a device tracked."""
+        self.stop()
+        with self._lock:
+            self._hold_calibration = True  # it failed, and would again on each row read now
+            try:
+                self._drain()
+            finally:
+                self._hold_calibration = False
+            n = self._recorded()
+            if n < 2:
+                return None
+            if self.calibration is not None:
+                meta = self.take_meta()
+            else:
+                o = self.options
+                meta = self._meta()
+                for key, v in (("height_m", o.height), ("floor_y", o.floor_y), ("devices", o.devices)):
+                    if v is not None:
+                        meta[key] = v
+                if self.describe:
+                    meta["recorded"] = self.describe.strip().rstrip(":")
+            rows = self.rows
+            return Take(rows.time[:n].copy(), rows.pos[:n].copy(), rows.quat[:n].copy(), meta)
 
     def _latency_stats(self, after_s):
         """(median, 99th percentile) ms of the latency of the frames made live from ``after_s`` into the take."""
