@@ -78,7 +78,8 @@ def check_not_input(args, outputs) -> None:
 
 def load_input_from_args(args):
     from .formats.inputs import load_input
-    return load_input(args.input, asf=args.asf, input_fps=args.input_fps, height=args.height)
+    return load_input(args.input, asf=args.asf, input_fps=args.input_fps, height=args.height,
+                      role=getattr(args, "role", None))
 
 
 # --------------------------------------------------------------------------- extract
@@ -96,6 +97,7 @@ def cmd_extract(args) -> int:
 
         offsets = offsets_for({}, args.head_offset, args.hand_offset)
         take = load_headset_input(args.input, asf=args.asf, input_fps=args.input_fps, height=args.height,
+                                  role=getattr(args, "role", None),
                                   offsets=offsets)
     else:
         take = load_input_from_args(args)

@@ -22,11 +22,13 @@ batch``) they are ``operators/batch_worker.py`` processes, which enable the
 checkout as an extension themselves and then use :func:`convert_job` too.
 """
 
+import contextlib
 import os
 import shutil
 import sys
 
 import bpy
+import numpy as np
 
 from ..dancing_points_addon import batch as core_batch
 from ..dancing_points_addon.argtypes import Parser, exit_for
@@ -144,6 +146,72 @@ def _retarget_onto_rigs(context, duet_coll, opts, path):
         raise UserError("{:s}: retarget: {:s}".format(path, error_message(exc))) from None
 
 
+# Blender's FBX importer puts FBX time 0 on this frame by default (its Animation Offset).
+FBX_IMPORT_OFFSET = 1
+
+
+@contextlib.contextmanager
+def _keys_shifted(scene, by):
+    """Every action keyed on the scene's objects moved ``by`` frames (and the
+    scene's frame range with it) for a while; the keys are put back exactly."""
+    saved = []
+    seen = set()
+    for obj in scene.objects:
+        action, slot = compat.assigned_action(obj)
+        if action is None or (action, slot) in seen:
+            continue
+        seen.add((action, slot))
+        for fc in compat.fcurves_of(action, slot):
+            kp = fc.keyframe_points
+            co = {}
+            for attr in ("co", "handle_left", "handle_right"):
+                co[attr] = np.empty(2 * len(kp), dtype=np.float32)
+                kp.foreach_get(attr, co[attr])
+            saved.append((fc, co))
+    rng = (scene.frame_start, scene.frame_end, scene.frame_current)
+    try:
+        for fc, co in saved:
+            for attr, arr in co.items():
+                moved = arr.copy()
+                moved[0::2] += by
+                fc.keyframe_points.foreach_set(attr, moved)
+            fc.update()
+        scene.frame_start, scene.frame_end = rng[0] + by, rng[1] + by
+        yield
+    finally:
+        for fc, co in saved:
+            for attr, arr in co.items():
+                fc.keyframe_points.foreach_set(attr, arr)
+            fc.update()
+        scene.frame_start, scene.frame_end = rng[0], rng[1]
+        scene.frame_set(rng[2])
+
+
+def export_fbx(context, filepath, path=None):
+    """The scene's duet (armatures and bodies, not the stage) as an FBX at
+    ``filepath``: one animation stack, every bone keyed on every frame. The
+    exporter writes the scene's time (frame ``f`` at ``f / fps``) and Blender's
+    importer adds one frame by default, so the keys are written one frame early:
+    a re-import with the default settings lands on the frames of the .blend."""
+    from . import stage
+
+    scene = context.scene
+    by = -FBX_IMPORT_OFFSET if scene.frame_start >= FBX_IMPORT_OFFSET else 0
+    try:
+        with stage.excluded(context), _keys_shifted(scene, by):  # the duet, not the preview's floor
+            # the scene's one stack: per-action stacks would pair each armature with every action its bones fit
+            res = bpy.ops.export_scene.fbx(
+                filepath=filepath, check_existing=False, use_selection=False,
+                object_types={'ARMATURE', 'MESH'}, add_leaf_bones=False, bake_anim=True,
+                bake_anim_use_all_bones=True, bake_anim_use_nla_strips=False,
+                bake_anim_use_all_actions=False, bake_anim_force_startend_keying=True,
+                bake_anim_simplify_factor=0.0)
+    except RuntimeError as exc:
+        raise _op_error(exc, path) from None
+    if 'FINISHED' not in res:
+        raise UserError("{:s}: the FBX export failed".format(path or filepath))
+
+
 def convert_job(job, progress):
     """One take of a batch in this Blender process: write the outputs of
     ``job["temps"]`` (``{kind: temporary path}``; kinds ``blend``, ``fbx``, ``mp4``,
@@ -160,7 +228,8 @@ def convert_job(job, progress):
     context = _fresh_scene()
     try:
         res = bpy.ops.dancing_points.import_take(filepath=path, input_fps=float(opts.get("input_fps") or 0.0),
-                                                 height=float(opts.get("height") or 0.0))
+                                                 height=float(opts.get("height") or 0.0),
+                                                 role=opts.get("role") or 'FILE')
     except RuntimeError as exc:
         raise _op_error(exc, path) from None
     if 'FINISHED' not in res:
@@ -196,19 +265,7 @@ def convert_job(job, progress):
         if 'FINISHED' not in res:
             raise UserError("{:s}: saving the .blend failed".format(path))
     if "fbx" in temps:
-        from . import stage
-        try:
-            with stage.excluded(context):  # the duet, not the preview's floor
-                res = bpy.ops.export_scene.fbx(
-                    filepath=temps["fbx"], check_existing=False, use_selection=False,
-                    object_types={'ARMATURE', 'MESH'}, add_leaf_bones=False, bake_anim=True,
-                    bake_anim_use_all_bones=True, bake_anim_use_nla_strips=False,
-                    bake_anim_use_all_actions=False, bake_anim_force_startend_keying=True,
-                    bake_anim_simplify_factor=0.0)
-        except RuntimeError as exc:
-            raise _op_error(exc, path) from None
-        if 'FINISHED' not in res:
-            raise UserError("{:s}: the FBX export failed".format(path))
+        export_fbx(context, temps["fbx"], path)
     if "mp4" in temps:
         _render_video(context, temps["mp4"], duet.n_frames, progress, 0.85, 1.0)
     return {"frames": int(duet.n_frames)}

@@ -1,12 +1,14 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """Read an FBX file as a take in a ``bpy``-module process (Blender side, standalone).
 
-``python operators/fbx_take.py INPUT.fbx OUT.npz [--input-fps F]``: the core's
+``python operators/fbx_take.py INPUT.fbx OUT.npz [--input-fps F] [--role R]``: the core's
 ``formats.fbx.load_fbx`` runs this for ``synthesize`` and ``extract`` of an
 ``.fbx`` (the core never imports ``bpy``). It enables this checkout as the
 extension (``batch_worker.enable_extension_in_bpy``), reads the file in an
-empty scene with ``take_io.load_any`` (Blender's FBX importer; the rig's head
-and wrists, exactly as *Import Dancing Points take* reads them) and writes the
+empty scene with ``take_rig.read_rig_take`` (Blender's FBX importer; the rig's head
+and wrists, exactly as *Import Dancing Points take* reads them: in a file with
+several armatures, the one ``take_rig.choose_armature`` picks for ``--role``, the
+take's role, else the leader's) and writes the
 take's arrays to ``OUT.npz``. A bad file: one line ``error: FILE: what`` on
 stderr and exit status 2; nothing written.
 """
@@ -27,6 +29,7 @@ def main(argv) -> int:
     ap.add_argument("input")
     ap.add_argument("output")
     ap.add_argument("--input-fps", type=float, default=0.0)
+    ap.add_argument("--role", choices=("leader", "follower"), default=None)
     args = ap.parse_args(argv)
     from dancing_points_addon.errors import error_message
 
@@ -42,9 +45,13 @@ def main(argv) -> int:
 
         module = enable_extension_in_bpy()
         bpy.ops.wm.read_homefile(use_empty=True)
-        take_io = importlib.import_module(module + ".operators.take_io")
+        take_rig = importlib.import_module(module + ".operators.take_rig")
         fbx = importlib.import_module(module + ".dancing_points_addon.formats.fbx")
-        take = take_io.load_any(bpy.context, args.input, input_fps=args.input_fps or 0.0)
+        check_take = importlib.import_module(module + ".dancing_points_addon.formats.inputs").check_take
+        check_rate = importlib.import_module(module + ".dancing_points_addon.formats.limits").check_rate
+        path = os.path.abspath(args.input)
+        fps = check_rate(path, args.input_fps) if args.input_fps > 0 else 0.0
+        take = check_take(take_rig.read_rig_take(bpy.context, path, ".fbx", fps, role=args.role), path)
         tmp = args.output + ".part"
         with open(tmp, "wb") as f:
             np.savez(f, **fbx.take_arrays(take))

@@ -31,9 +31,11 @@ FILE_TYPES = (".csv", ".bvh", ".fbx", ".amc")
 MAX_FRAME = bpy.types.Scene.bl_rna.properties["frame_end"].hard_max
 
 
-def load_any(context, path, input_fps=0.0, height=0.0, axis_forward='-Z', axis_up='Y', units='AUTO', ghost=None):
+def load_any(context, path, input_fps=0.0, height=0.0, axis_forward='-Z', axis_up='Y', units='AUTO', ghost=None,
+             role=None, armature=""):
     """Any supported file as a :class:`Take` (motion space, source rate);
-    ``ghost``: see :func:`.take_rig.read_rig_take` (BVH/FBX only)."""
+    ``ghost``, ``role`` and ``armature`` (which armature of a file with several):
+    see :func:`.take_rig.read_rig_take` (BVH/FBX only)."""
     path = bpy.path.abspath(path) if path else path
     if not path:
         raise InputError("<no file>", "no file given")
@@ -47,8 +49,8 @@ def load_any(context, path, input_fps=0.0, height=0.0, axis_forward='-Z', axis_u
     h = check_height(path, height) if height and height > 0 else None
     regular_file(path, "a take file", missing="no such file")
     if ext in (".bvh", ".fbx"):
-        take = check_take(read_rig_take(context, path, ext, fps or 0.0, axis_forward, axis_up, units, ghost),
-                          path)
+        take = check_take(read_rig_take(context, path, ext, fps or 0.0, axis_forward, axis_up, units, ghost,
+                                        role=role, armature=armature), path)
     else:
         take = load_input(path, input_fps=fps)  # check_take included
     if h is not None:
@@ -88,6 +90,11 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
                ('leader', "Leader", "The leader's points: the follower is synthesised"),
                ('follower', "Follower", "The follower's points: the leader is synthesised")),
     )
+    armature: StringProperty(
+        name="Armature", default="",
+        description="BVH/FBX with several armatures: the name of the one to read (empty: the only one with head "
+                    "and hand bones, else the one dancing the take's Role, as in a Dancing Points duet FBX)",
+    )
     devices: EnumProperty(
         name="Devices", default='FILE',
         description="What the take's three poses are (SPEC §3 devices)",
@@ -113,7 +120,7 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         layout = self.layout
         layout.use_property_split = True
         layout.use_property_decorate = False
-        for prop in ("frame_start", "input_fps", "role", "height", "devices", "units", "update_scene_fps",
+        for prop in ("frame_start", "input_fps", "role", "armature", "height", "devices", "units", "update_scene_fps",
                      "update_scene_duration", "keep_source", "axis_forward", "axis_up"):
             layout.prop(self, prop)
 
@@ -128,8 +135,9 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         except Exception as exc:  # noqa: BLE001 - a user error or an unexpected failure: one line
             self.report({'ERROR'}, error_message(exc, "Dancing Points import failed"))
             return {'CANCELLED'}
-        self.report({'INFO'}, "Imported take '{:s}' ({:d} frames at 30 fps)".format(
-            coll.name, coll.dancing_points.n_frames))
+        arm = getattr(self, "_source_armature", "")
+        self.report({'INFO'}, "Imported take '{:s}' ({:d} frames at 30 fps{:s})".format(
+            coll.name, coll.dancing_points.n_frames, ", armature '{:s}'".format(arm) if arm else ""))
         return {'FINISHED'}
 
     def import_file(self, context):
@@ -138,7 +146,8 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         ghost = {} if self.keep_source and ext in (".bvh", ".fbx") else None
         try:
             take = load_any(context, path, self.input_fps, self.height, self.axis_forward, self.axis_up,
-                            self.units, ghost)
+                            self.units, ghost, role=None if self.role == 'FILE' else self.role,
+                            armature=self.armature.strip())
             coll = self._make_take(context, path, ext, take, ghost)
         except Exception:
             if ghost:  # the kept rig, when the take could not be made
@@ -151,6 +160,7 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         source_fps = float(take.meta.pop("source_fps", 0.0))
         estimated = take.meta.pop("rotation_estimate", None) is not None
         take.meta.pop("source_naming", None)
+        self._source_armature = take.meta.pop("source_armature", "")  # said in the INFO line
         if not source_fps and take.n_frames > 1:
             source_fps = float((take.n_frames - 1) / max(take.time[-1] - take.time[0], 1e-9))
         take30 = resample_take(take, NET_FPS)
@@ -178,6 +188,10 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         # the scene's rate / 30 (a 24 fps project keeps its rate and the take its real speed).
         step = 1.0 if self.update_scene_fps else (scene.render.fps / (scene.render.fps_base or 1.0)) / NET_FPS
         span = int(np.ceil((take30.n_frames - 1) * step - 1e-6))  # scene frames from the first sample to the last
+        if span > MAX_FRAME:
+            raise InputError(path, "the take's {:d} frames span {:d} scene frames at this scene's rate, more than "
+                                   "Blender's {:d}: import it at 30 fps (Update Scene FPS) or cut it".format(
+                                       take30.n_frames, span + 1, MAX_FRAME + 1))
         if self.frame_start + span > MAX_FRAME:
             raise InputError(path, "the take's {:d} frames from Start Frame {:d} would end on frame {:d}, past "
                                    "Blender's last frame {:d}: set Start Frame to at most {:d}".format(

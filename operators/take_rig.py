@@ -19,6 +19,8 @@ unskinned armature), each bone's facing is calibrated against the body
 (``blender_math.rig_rotations``).
 """
 
+import re
+
 import bpy
 import numpy as np
 
@@ -30,6 +32,11 @@ from ..dancing_points_addon.formats.limits import check_duration, check_rate
 from ..dancing_points_addon.formats.take import take_from_tracked
 from ..dancing_points_addon.formats.units import unit_scale_for_height
 from . import compat
+from .bake import ROLE_LABEL
+from .props import ROLE_PROP, ROLES
+
+# The armatures of a baked duet by the role they dance (``bake.bake_duet``: "DP Leader", "DP Follower").
+DP_ARMATURE_ROLES = {"DP " + label: role for role, label in ROLE_LABEL.items()}
 
 
 def _snapshot():
@@ -85,9 +92,72 @@ def _precheck(path, ext, input_fps=None):
             raise InputError(path, "not a binary FBX file (Blender's importer reads binary FBX only)")
 
 
+def _file_name(obj, taken):
+    """The name ``obj`` has in the file: Blender renames an imported object whose
+    name an object of the scene already has (``Rig`` -> ``Rig.001``)."""
+    m = re.fullmatch(r"(.+)\.\d{3,}", obj.name)
+    return m.group(1) if m and m.group(1) in taken else obj.name
+
+
+def _armature_role(obj, name):
+    """The dance role an armature states: its :data:`~.props.ROLE_PROP`, else the
+    name of a Dancing Points duet's armature (``DP Leader`` / ``DP Follower``, as
+    an FBX export of a duet has them); None when it says none."""
+    role = obj.get(ROLE_PROP)
+    if role in ROLES:
+        return role
+    return DP_ARMATURE_ROLES.get(name)
+
+
+def choose_armature(path, arms, taken=(), role=None, armature=""):
+    """The armature of a file to read a take from, among the imported ``arms``:
+    ``(object, rig_tracked_bones spec, name in the file, role it states)``.
+
+    ``armature`` (a name as in the file) picks one. Otherwise, of the armatures
+    with head and hand bones: the only one; else the only one whose stated role
+    (:func:`_armature_role`) is ``role`` (None: the leader, a take's default
+    role), so that a Dancing Points duet FBX gives the chosen dancer. Anything
+    else is an :class:`InputError` naming the candidates and how to choose."""
+    found = []
+    for arm in sorted(arms, key=lambda o: o.name):
+        spec = rig_tracked_bones([b.name for b in arm.data.bones])
+        name = _file_name(arm, taken)
+        found.append((arm, spec, name, _armature_role(arm, name)))
+    cands = [f for f in found if f[1] is not None]
+    listed = ", ".join(repr(f[2]) for f in cands)
+    if armature:
+        named = [f for f in found if armature in (f[2], f[0].name)]
+        if not named:
+            raise InputError(path, "no armature named {!r} in the file (armatures: {:s})".format(
+                armature, ", ".join(repr(f[2]) for f in found) or "none"))
+        if named[0][1] is None:
+            raise InputError(path, "armature {!r} has no Head bone and hand bones (armatures with them: "
+                                   "{:s})".format(armature, listed or "none"))
+        return named[0]
+    if not cands:
+        raise InputError(path, "no armature with a Head bone and hand bones (expected the CMU-converted "
+                               "naming: Head, LeftHand, LeftFingerBase, ... or Mixamo: mixamorig:Head, "
+                               "mixamorig:LeftHand, ...)")
+    if len(cands) == 1:
+        return cands[0]
+    want = role or "leader"
+    same = [f for f in cands if f[3] == want]
+    if len(same) == 1:
+        return same[0]
+    raise InputError(path, "{:d} armatures have a Head bone and hand bones ({:s}){:s}; name the one to read "
+                           "in the import's Armature option, or keep only that one in the file".format(
+                               len(cands), listed, " and none is the {:s}'s".format(want) if not same else
+                               ", {:d} of them the {:s}'s".format(len(same), want)))
+
+
 def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up='Y', units='AUTO',
-                  ghost=None):
+                  ghost=None, role=None, armature=""):
     """A BVH/FBX file through Blender's importer -> :class:`Take` (motion space).
+
+    The armature read is :func:`choose_armature`'s (``role``: the take's role
+    when given, ``armature``: a name as in the file); its name in the file is
+    ``meta['source_armature']``, and when no ``role`` is given, the role it
+    states (a duet FBX's ``DP Leader`` / ``DP Follower``) is ``meta['role']``.
 
     Everything the importer made is removed again and the scene's frame rate,
     range and current frame are restored, whatever happens; except, when
@@ -115,17 +185,9 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
             raise InputError(path, f"Blender's {ext[1:].upper()} importer could not read the file")
         file_fps = scene.render.fps / scene.render.fps_base
         arms = [o for o in bpy.data.objects if o not in before["objects"] and o.type == 'ARMATURE']
-        found = None
-        for arm in arms:
-            spec = rig_tracked_bones([b.name for b in arm.data.bones])
-            if spec is not None:
-                found = (arm, spec)
-                break
-        if found is None:
-            raise InputError(path, "no armature with a Head bone and hand bones (expected the CMU-converted "
-                                   "naming: Head, LeftHand, LeftFingerBase, ... or Mixamo: mixamorig:Head, "
-                                   "mixamorig:LeftHand, ...)")
-        arm, (point_bones, rot_bones, naming) = found
+        taken = {o.name for o in before["objects"]}
+        arm, (point_bones, rot_bones, naming), arm_name, arm_role = choose_armature(path, arms, taken, role,
+                                                                                   armature)
         side_bones = rig_side_bones([b.name for b in arm.data.bones])
         action = arm.animation_data.action if arm.animation_data else None
         if action is None:
@@ -175,7 +237,9 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
         rest_m = bm.C.T @ rest_rot
         rot = bm.rig_rotations(world_m, rest_m, pts_m[:, 3], pts_m[:, 4], rest_ok)
         time = (frames - frames[0]) / rate
-        meta = {"source_naming": naming}
+        meta = {"source_naming": naming, "source_armature": arm_name}
+        if role is None and arm_role is not None:  # the file says whose dance it is (a duet FBX's armature)
+            meta["role"] = arm_role
         take = take_from_tracked(time, pts_m[:, :3], rot[:, 0], rot[:, 1], rot[:, 2], meta, path)
         take.meta["source_fps"] = rate
         if not rest_ok:

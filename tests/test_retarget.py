@@ -120,6 +120,14 @@ def test_preset_round_trip_and_errors(tmp_path):
         rt.load_preset(bad)
     with pytest.raises(rt.RetargetError, match="exactly one bone mapped to 'root'"):
         rt.validate_mapping({"thigh_l": "lfemur"}, ["thigh_l"])
+    # not text at all (an .npz picked by mistake), or JSON nested past Python's limit: one line naming the file
+    binary = tmp_path / "take.npz"
+    np.savez(binary, x=np.arange(3.0))
+    with pytest.raises(rt.RetargetError, match=r"take\.npz: not a bone map \(not UTF-8 text\)$"):
+        rt.load_preset(binary)
+    bad.write_text("[" * 100000)
+    with pytest.raises(rt.RetargetError, match=r"bad\.json: not a bone map \(JSON nested too deeply\)$"):
+        rt.load_preset(bad)
 
 
 def _fake_meshopt_stream():
@@ -622,6 +630,24 @@ def test_bad_input_reports_one_line(scene):
     with pytest.raises(RuntimeError, match="no object named 'Her Rig'"):
         bpy.ops.dancing_points.retarget_duet(duet=duet, leader_target=ue.name, follower_target="Her Rig")
     assert {o.name: o.animation_data.action for o in (dp["follower"], ue)} == acts
+
+
+def test_loading_a_file_that_is_no_bone_map_reports_one_line(tmp_path):
+    if bpy is None:
+        pytest.skip("no bpy module")
+    rig = bpy.data.objects.new("My Rig", bpy.data.armatures.new("My Rig"))  # (the module's scene stays)
+    bpy.context.scene.collection.objects.link(rig)
+    try:
+        binary = tmp_path / "take.npz"
+        np.savez(binary, x=np.arange(3.0))
+        with pytest.raises(RuntimeError, match=r"take\.npz: not a bone map \(not UTF-8 text\)") as exc:
+            bpy.ops.dancing_points.retarget_map_load(target=rig.name, filepath=str(binary))
+        assert str(binary) in str(exc.value) and "UnicodeDecodeError" not in str(exc.value)
+        assert len(rig.dp_retarget_map) == 0
+    finally:
+        data = rig.data
+        bpy.data.objects.remove(rig)
+        bpy.data.armatures.remove(data)
 
 
 def test_panel_draws_and_rig_files_load(scene, tmp_path):

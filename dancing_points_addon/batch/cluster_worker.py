@@ -184,7 +184,8 @@ def core_convert(job, progress):
 
     o = job["options"]
     kinds = set(job["temps"])
-    take = load_input(job["input"], asf=o.get("asf"), input_fps=o.get("input_fps"), height=o.get("height"))
+    take = load_input(job["input"], asf=o.get("asf"), input_fps=o.get("input_fps"), height=o.get("height"),
+                      role=o.get("role"))
     progress(0.05)
     synth = Synthesizer(synthesis_options(o, take.height))
     duet = synth.synthesize(take, progress=lambda i, n: progress(0.05 + 0.9 * i / max(n, 1)))

@@ -55,7 +55,8 @@ class CoreConverter:
         from ..runtime import Synthesizer
 
         o = job["options"]
-        take = load_input(job["input"], asf=o.get("asf"), input_fps=o.get("input_fps"), height=o.get("height"))
+        take = load_input(job["input"], asf=o.get("asf"), input_fps=o.get("input_fps"), height=o.get("height"),
+                      role=o.get("role"))
         progress(0.05)
         synth = Synthesizer(synthesis_options(o, take.height))
         duet = synth.synthesize(take, progress=lambda i, n: progress(0.05 + 0.9 * i / max(n, 1)))

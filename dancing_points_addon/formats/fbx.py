@@ -6,7 +6,10 @@ standalone reader (:data:`FBX_READER`, ``operators/fbx_take.py``) in a
 ``python`` process with the ``bpy`` module: it enables this checkout as the
 extension, imports the file as *Import Dancing Points take* does (the head
 and wrists read off the rig, the same code) and writes the take at the file's
-own rate to a temporary ``.npz`` that is read back here. Without the ``bpy``
+own rate to a temporary ``.npz`` that is read back here. A file with several
+armatures (a Dancing Points duet FBX: ``DP Leader`` and ``DP Follower``) gives
+the one whose dance is ``role`` (default: the leader's), else one line naming
+them; the take's ``source_armature`` says which was read. Without the ``bpy``
 module the answer is one line saying how to get it.
 """
 from __future__ import annotations
@@ -48,11 +51,13 @@ def take_from_arrays(arrays, source: str) -> Take:
                 np.asarray(arrays["quats"], dtype=np.float64), meta, source)
 
 
-def load_fbx(path, input_fps=None) -> Take:
+def load_fbx(path, input_fps=None, role=None) -> Take:
     """The three points of an FBX file's rig as a :class:`Take` at the file's
     rate (``input_fps`` overrides it), read by Blender's importer in a ``bpy``
-    process. :class:`InputError` (one line, naming the file) when it cannot be
-    read, or when this Python has no ``bpy`` module."""
+    process; of several armatures, the one of ``role`` (``leader`` or
+    ``follower``; None: the take's, else the leader's) as in Blender's
+    *Import Dancing Points take*. :class:`InputError` (one line, naming the
+    file) when it cannot be read, or when this Python has no ``bpy`` module."""
     path = os.fspath(path)
     if not bpy_available():
         raise InputError(path, NO_BPY)
@@ -61,6 +66,8 @@ def load_fbx(path, input_fps=None) -> Take:
         cmd = [sys.executable, FBX_READER, os.path.abspath(path), out]
         if input_fps:
             cmd += ["--input-fps", repr(float(input_fps))]
+        if role:
+            cmd += ["--role", str(role)]
         env = dict(os.environ, PYTHONNOUSERSITE="1")
         res = subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              env=env, text=True, errors="replace")

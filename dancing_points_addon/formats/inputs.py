@@ -80,11 +80,13 @@ def check_take(take: Take, path=None) -> Take:
 INPUT_TYPES = (".csv", ".amc", ".bvh", ".fbx")
 
 
-def load_input(path, asf=None, input_fps=None, height=None) -> Take:
-    return _load(path, asf, input_fps, height)[0]
+def load_input(path, asf=None, input_fps=None, height=None, role=None) -> Take:
+    """Any supported input as a take at its source rate (see :func:`_load`);
+    ``role``: of a file with several dancers (an FBX duet), whose to read."""
+    return _load(path, asf, input_fps, height, role=role)[0]
 
 
-def load_headset_input(path, asf=None, input_fps=None, height=None, offsets=None) -> Take:
+def load_headset_input(path, asf=None, input_fps=None, height=None, offsets=None, role=None) -> Take:
     """What a headset and two controllers would record of the input's dancer
     (SPEC §3 ``devices=openxr``: ``extract --devices openxr``), through
     :func:`~..calibration.headset_take`: from a full-body motion (AMC, a CMU
@@ -93,13 +95,13 @@ def load_headset_input(path, asf=None, input_fps=None, height=None, offsets=None
     returned as it is."""
     from ..calibration import headset_take
 
-    take, hands = _load(path, asf, input_fps, height, want_hands=True)
+    take, hands = _load(path, asf, input_fps, height, want_hands=True, role=role)
     if take.meta.get("devices") == "openxr":
         return take
     return headset_take(take, hands, height=height, offsets=offsets)
 
 
-def _load(path, asf=None, input_fps=None, height=None, want_hands=False):
+def _load(path, asf=None, input_fps=None, height=None, want_hands=False, role=None):
     """:func:`load_input`, and with ``want_hands`` the hand bones' global
     rotations ``(T, 2, 3, 3)`` where the input has them (else None)."""
     """Any supported input as a take at its source rate.
@@ -142,7 +144,7 @@ def _load(path, asf=None, input_fps=None, height=None, want_hands=False):
                     take.time = take.time[0] + np.arange(take.n_frames) / input_fps
             elif ext == ".fbx":
                 from .fbx import load_fbx
-                take = _checked_motion_take(path, load_fbx(path, input_fps))
+                take = _checked_motion_take(path, load_fbx(path, input_fps, role))
             elif ext == ".amc":
                 if asf is not None:
                     regular_file(os.fspath(asf), "an ASF file", missing="no such ASF file")

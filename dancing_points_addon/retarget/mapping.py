@@ -76,6 +76,10 @@ def load_preset(path) -> dict:
         raise RetargetError("cannot read {:s}: {:s}".format(os.fspath(path), exc.strerror or str(exc))) from None
     except json.JSONDecodeError as exc:
         raise RetargetError("{:s}: not JSON ({:s})".format(os.fspath(path), str(exc))) from None
+    except UnicodeDecodeError:  # a binary file (an .npz, a .blend, ...)
+        raise RetargetError("{:s}: not a bone map (not UTF-8 text)".format(os.fspath(path))) from None
+    except RecursionError:
+        raise RetargetError("{:s}: not a bone map (JSON nested too deeply)".format(os.fspath(path))) from None
     if not isinstance(data, dict) or not isinstance(data.get("bones"), dict):
         raise RetargetError("{:s}: a preset needs a 'bones' object {{target bone: source chain}}".format(
             os.fspath(path)))
