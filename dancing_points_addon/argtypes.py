@@ -16,7 +16,7 @@ import re
 import unicodedata
 
 from .errors import UserError, error_message, one_line
-from .formats.limits import FLOOR_RANGE_M
+from .formats.limits import FLOOR_RANGE_M, HEIGHT_RANGE_M  # (imports no numpy)
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
 # Set to "1" before numpy loads (the benchmark, batch workers): one BLAS/OpenMP thread.
@@ -150,8 +150,9 @@ def printable(text) -> str:
 
 def height_metres(text: str) -> float:
     v = positive_float(text)
-    if not 0.5 <= v <= 3.0:
-        raise argparse.ArgumentTypeError(f"must be a height in metres between 0.5 and 3.0, got {text!r}")
+    lo, hi = HEIGHT_RANGE_M
+    if not lo <= v <= hi:
+        raise argparse.ArgumentTypeError(f"must be a height in metres between {lo} and {hi}, got {text!r}")
     return v
 
 

@@ -42,7 +42,7 @@ TRAIN_HEIGHT = 1.70
 TRAIN_HEAD_HEIGHT = 1.530
 HEAD_PERCENTILE = 90.0
 ESTIMATE_RANGE_M = (1.0, 2.3)  # an estimate beyond these is clipped (a child to a very tall adult)
-ROLES = ("leader", "follower")  # an estimated floor further than this from y = 0 is refused as a wrong height
+ROLES = ("leader", "follower")  # SPEC §3 role: whose three points a take holds
 
 
 @dataclass(frozen=True)

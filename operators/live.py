@@ -112,6 +112,10 @@ class LiveRun:
         self.error = None
 
 
+class StopReport(UserError):
+    """Stop could not make the duet: the message says why and what became of the take."""
+
+
 _RUN = None
 _LAST_ERROR = ""  # why the last session stopped on its own (a failing tick), and where its take went
 
@@ -295,9 +299,10 @@ def _stop_on_error(exc):
         out = stop(keep=True, collection=False)
         if out is not None:
             msg += "; Live stopped, the take is in " + out["csv"]
-    except Exception as stop_exc:  # noqa: BLE001 - it says where the rows went, when they were kept
-        said = error_message(stop_exc, "the take could not be kept")
-        msg = said if said.startswith(msg) else msg + "; " + said
+    except StopReport as report:  # the duet failed at the stop too: it says why, and where the rows went
+        msg = error_message(report)
+    except Exception as stop_exc:  # noqa: BLE001 - the tick's error, then the stop's
+        msg += "; " + error_message(stop_exc, "the take could not be kept")
     _LAST_ERROR = msg
     print("Dancing Points live: " + msg)
     _redraw(bpy.context)
@@ -322,6 +327,7 @@ def status(run=None):
     st["posed_ms"] = 1000.0 * float(np.median(lat)) if lat else float("nan")
     st["tick_ms"] = 1000.0 * float(np.median(run.tick_s[-60:])) if run.tick_s else float("nan")
     st["error"] = error_message(run.error) if run.error is not None else ""
+    st["warnings"] = list(run.session.warnings)  # e.g. the stream's role not the one set, metadata lost
     return st
 
 
@@ -368,11 +374,16 @@ def stop(context=None, keep=True, collection=True, bake_duet=None, folder=None):
         raw = run.session.received_take()
         if raw is None:
             raise  # nothing to keep ("nothing recorded")
-        write_take(path, raw)
-        raise UserError("{:s}; Live stopped: the take ({:d} rows, no duet made) was saved to {:s}".format(
-            error_message(exc, "the live duet failed"), raw.n_frames, path)) from exc
+        why = error_message(exc, "the live duet failed")
+        try:
+            write_take(path, raw)
+        except Exception as write_exc:  # noqa: BLE001 - both causes in one line
+            raise StopReport("{:s}; Live stopped, and the take ({:d} rows) could not be saved: {:s}".format(
+                why, raw.n_frames, error_message(write_exc, "writing it failed"))) from exc
+        raise StopReport("{:s}; Live stopped: the take ({:d} rows, no duet made) was saved to {:s}".format(
+            why, raw.n_frames, path)) from exc
     write_take(path, result.take)
-    out = {"csv": path, "take": None, "duet": None, "result": result}
+    out = {"csv": path, "take": None, "duet": None, "result": result, "warnings": list(run.session.warnings)}
     if not collection:
         return out
     context = context or bpy.context
@@ -403,7 +414,10 @@ def stop(context=None, keep=True, collection=True, bake_duet=None, folder=None):
 
 @persistent
 def _on_load_pre(*_args):
-    """Another file is loaded while live: stop, keeping the take file only."""
+    """Another file is loaded while live: stop, keeping the take file only
+    (the last session's error is the old file's: not shown any more)."""
+    global _LAST_ERROR
+    _LAST_ERROR = ""
     if _RUN is None:
         return
     try:
@@ -465,6 +479,8 @@ class DANCING_POINTS_OT_live_stop(bpy.types.Operator):
             self.report({'INFO'}, "Live stopped")
         else:
             r = out["result"]
+            for line in out["warnings"]:
+                self.report({'WARNING'}, line)
             self.report({'INFO'}, "Live stopped: take {:s} ({:d} rows){:s}".format(
                 out["csv"], r.take.n_frames, ", duet baked" if out["duet"] is not None else ""))
         return {'FINISHED'}

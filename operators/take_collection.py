@@ -140,18 +140,17 @@ def remove_collection(coll):
 
 
 def _last_key(objs):
-    """The scene frame of the last location or rotation key of the device
-    empties (None: none is keyed, e.g. driven by constraints)."""
-    last = None
+    """The last scene frame every keyed device empty is keyed to: of each, its
+    last location or rotation key; of those, the earliest (None: none is keyed,
+    e.g. all driven by constraints)."""
+    ends = []
     for obj in objs.values():
         action, slot = compat.assigned_action(obj)
-        for path, n in (("location", 3), ("rotation_quaternion", 4)):
-            for i in range(n):
-                fc = compat.find_fcurve(action, slot, path, i)
-                if fc is not None and len(fc.keyframe_points):
-                    end = float(fc.range()[1])
-                    last = end if last is None else max(last, end)
-    return last
+        own = [float(fc.range()[1]) for path, n in (("location", 3), ("rotation_quaternion", 4)) for i in range(n)
+               for fc in (compat.find_fcurve(action, slot, path, i),) if fc is not None and len(fc.keyframe_points)]
+        if own:
+            ends.append(max(own))
+    return min(ends) if ends else None
 
 
 def _device_world(obj, context, frames):

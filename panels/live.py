@@ -53,6 +53,8 @@ class VIEW3D_PT_dancing_points_live(SubPanel, bpy.types.Panel):
         box.label(text="Latency {:s}".format("-" if math.isnan(posed) else "{:.1f} ms".format(posed)))
         if st["error"]:
             box.label(text=st["error"], icon='ERROR')
+        for line in st["warnings"]:
+            box.label(text=line, icon='INFO')
 
 
 classes = (VIEW3D_PT_dancing_points_live,)

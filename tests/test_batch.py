@@ -329,10 +329,12 @@ def test_report_option_and_name_clashes(takes, tmp_path):
     assert files["take.csv"]["output"] == str(out / "take_csv.npz")
     assert files["take.bvh"]["output"] == str(out / "take_bvh.npz")
     assert sorted(os.listdir(out)) == ["take_bvh.npz", "take_csv.npz"]
-    # a report that cannot be written there is refused before any work (it used to run every take, exit 0)
-    res = run_batch(d, tmp_path / "out2", "npz", "--report", "/proc/dp_report.json")
-    assert res.returncode == 2 and "cannot write the report there" in res.stderr, res.stdout + res.stderr
-    assert not (tmp_path / "out2").exists()
+    # a report that cannot be written there is refused before any work (it used to run every take, exit 0);
+    # /proc: a folder where no file can be made, even by root (Linux)
+    if sys.platform.startswith("linux"):
+        res = run_batch(d, tmp_path / "out2", "npz", "--report", "/proc/dp_report.json")
+        assert res.returncode == 2 and "cannot write the report there" in res.stderr, res.stdout + res.stderr
+        assert not (tmp_path / "out2").exists()
 
 
 # --------------------------------------------------------------------------- stopping

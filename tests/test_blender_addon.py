@@ -810,6 +810,19 @@ def test_a_take_longer_than_its_keys_is_refused(files):
     _assert_unchanged(state)
     coll.dancing_points.n_frames = T - 10  # fewer frames than keys: a shortened take, read as such
     assert take_collection.take_from_collection(bpy.context, coll).n_frames == T - 10
+    # one hand's keys ending early: the take ends where every device is keyed
+    coll.dancing_points.n_frames = T
+    compat = import_from_extension("operators.compat")
+    hand = import_from_extension("operators.props").device_objects(coll)["lhand"]
+    action, slot = compat.assigned_action(hand)
+    for path, n in (("location", 3), ("rotation_quaternion", 4)):
+        for i in range(n):
+            kp = compat.find_fcurve(action, slot, path, i).keyframe_points
+            for _ in range(5):
+                kp.remove(kp[len(kp) - 1])
+    user_error = import_from_extension("dancing_points_addon.errors").UserError
+    with pytest.raises(user_error, match=f"has {T} frames .* set Frames to {T - 5} or key the rest"):
+        take_collection.take_from_collection(bpy.context, coll)
 
 
 def test_headset_take_import_calibration_on_the_take(files, tmp_path):
@@ -858,7 +871,7 @@ def test_take_height_and_floor_out_of_range_are_refused(files):
     when the take is read for synthesis, for values a script or an older file
     holds past the bounds (a floor of 1e6 m once reached the stage: a 47.8 GiB
     checker floor)."""
-    from dancing_points_addon.calibration import FLOOR_RANGE_M
+    from dancing_points_addon.formats.limits import FLOOR_RANGE_M
     from dancing_points_addon.formats.limits import HEIGHT_RANGE_M
 
     bsu.fresh_scene()

@@ -1,10 +1,12 @@
 """``python -m dancing_points_addon extract`` as a user runs it (SPEC §7)."""
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from conftest import SALSA, SOLO
+from conftest import ROOT, SALSA, SOLO
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
 from support.helpers import (REJECTIONS, assert_bad_input, bad_number, bone_missing, broken_amc, frame_truncated,
@@ -181,3 +183,12 @@ def test_help():
     assert res.returncode == 0
     for opt in ("--input-fps", "--asf", "--height", "-o"):
         assert opt in res.stdout
+
+
+def test_the_entry_point_loads_no_numpy_before_its_thread_settings():
+    """``python -m dancing_points_addon benchmark`` (SPEC §6 latency: one
+    thread) sets one BLAS thread before numpy loads; what ``__main__`` imports
+    before that (``argtypes`` and the bounds it shares) must not load numpy."""
+    code = "import sys, dancing_points_addon.argtypes; print('numpy' in sys.modules)"
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == "False", r.stdout + r.stderr

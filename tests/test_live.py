@@ -676,10 +676,13 @@ def test_live_duration_ends_the_take(tmp_path):
 
 def test_metadata_survives_a_lossy_link(tmp_path):
     """``stream --drop 0.9`` of a ``devices=joints`` take over VMC (whose
-    default is ``openxr``): with seed 0 every sample that once carried the
-    metadata (the first, then one a second) is among those left out before the
-    calibration. The recording and its summary still say ``devices joints``,
-    with no warning, and the duet is ``synthesize``'s of the recorded take."""
+    default is ``openxr``): with seed 0 every sample that carried the metadata
+    when it went out once a second (the first, then one a second) is among
+    those left out before the calibration; it now rides every sample of the
+    first seconds. The recording and its summary say ``devices joints``, with
+    no warning, and the duet is ``synthesize``'s of the recorded take. (The
+    wait for announced metadata that is lost:
+    :func:`test_announced_metadata_lost_on_the_way_is_waited_for`.)"""
     out = tmp_path / "lossy.npz"
     live, port = _start_live("--format", "vmc", "-o", out)
     sender, stdout, stderr = _stream_into(live, port, SAMPLE, "--format", "vmc", "--rate", "72", "--duration", "5",

@@ -358,7 +358,7 @@ def test_start_refuses_a_height_or_floor_out_of_range(live):
     """Live's Dancer Height and Floor Height have the command line's ranges: hard
     bounds on the properties, and Start refuses in one line what a script or
     an older file holds past them, before anything is built."""
-    from dancing_points_addon.calibration import FLOOR_RANGE_M
+    from dancing_points_addon.formats.limits import FLOOR_RANGE_M
     from dancing_points_addon.formats.limits import HEIGHT_RANGE_M
 
     port = _free_port()
@@ -430,3 +430,26 @@ def test_a_failing_calibration_keeps_the_take(live, tmp_path, monkeypatch):
             panel = bpy.types.Panel.bl_rna_get_subclass_py("VIEW3D_PT_dancing_points_live")
             panel.draw(SimpleNamespace(layout=_Layout(log)), bpy.context)
             assert ("label", message) in log
+
+
+def test_the_sessions_warnings_are_shown(live, tmp_path, capfd):
+    """A stream that says ``role=follower`` into Live set to Leader: the
+    session's warning (the role set wins) is in the status the panel draws,
+    and Stop reports it (it used to sit in a list nothing showed)."""
+    t, pos, quats = stream_rows(read_take(SAMPLE), 72.0)
+    assert bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend")) == {'FINISHED'}
+    live.start(bpy.context, _settings('OSC', _free_port()))
+    for i in range(int(2.0 * 72)):
+        live.running().session.put(Sample(500.0 + float(t[i]), {d: (pos[i][d], quats[i][d]) for d in range(3)},
+                                          meta={"role": "follower", "devices": "joints"}))
+        live.tick(now=500.0 + float(t[i]))
+    said = "warning: the stream says role=follower; its points are read as the leader's (the role given wins)"
+    assert live.status()["warnings"] == [said]
+    log = []
+    panel = bpy.types.Panel.bl_rna_get_subclass_py("VIEW3D_PT_dancing_points_live")
+    panel.draw(SimpleNamespace(layout=_Layout(log)), bpy.context)
+    assert ("label", said) in log
+    capfd.readouterr()
+    assert bpy.ops.dancing_points.live_stop(keep=True) == {'FINISHED'}
+    assert said in capfd.readouterr().out
+    _no_leftovers(live)

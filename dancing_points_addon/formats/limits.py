@@ -1,9 +1,11 @@
 """Bounds on what an input may be (a few hours of a dancer at a plausible rate
 and height), checked by every reader before anything the size of the take's
-duration is allocated, and by :func:`~.inputs.check_take`."""
+duration is allocated, and by :func:`~.inputs.check_take`. Imports no numpy:
+:mod:`..argtypes` shares these bounds before numpy may load (the benchmark's
+one BLAS thread is set then)."""
 from __future__ import annotations
 
-import numpy as np
+import math
 
 from ..errors import InputError
 
@@ -12,7 +14,7 @@ MAX_GAP_S = 10.0  # rows more than 10 s apart are bad input, not a gap to interp
 MAX_ABS_TIME_S = 1e10  # |time| in seconds; the Unix epoch (~1.7e9 s) fits, milliseconds do not
 INPUT_FPS_RANGE = (1.0, 1000.0)  # Hz: --input-fps, a BVH's Frame Time, a rig's frame rate
 HEIGHT_RANGE_M = (0.5, 3.0)  # metres: --height and a take's height_m (as argtypes.height_metres)
-FLOOR_RANGE_M = 1.0  # a floor given (take, option, setting) lies within this many metres of y = 0
+FLOOR_RANGE_M = 1.0  # a floor given (take, option, setting) or estimated lies within this many metres of y = 0
 
 
 def check_rate(path, fps, line=None, what="input frame rate") -> float:
@@ -38,7 +40,7 @@ def check_height(path, height, line=None, what="height") -> float:
         h = float(height)
     except (TypeError, ValueError):
         raise InputError(path, f"{what} is not a number: {height!r}", line) from None
-    if not (np.isfinite(h) and lo <= h <= hi):
+    if not (math.isfinite(h) and lo <= h <= hi):
         raise InputError(path, f"{what} must be between {lo:g} and {hi:g} m, got {h:g}", line)
     return h
 

@@ -59,7 +59,7 @@ import numpy as np
 
 from ..calibration import Calibration, apply_calibration
 from ..errors import UserError
-from ..formats.limits import FLOOR_RANGE_M
+from ..formats.limits import FLOOR_RANGE_M, HEIGHT_RANGE_M
 from ..formats.take import Take
 from ..resample import NET_FPS, output_offsets
 from . import ROLES
@@ -347,7 +347,7 @@ class LiveSession:
             try:
                 if key == "devices" and v in DEVICE_KINDS:
                     meta[key] = v
-                elif key == "height_m" and 0.5 <= float(v) <= 3.0:
+                elif key == "height_m" and HEIGHT_RANGE_M[0] <= float(v) <= HEIGHT_RANGE_M[1]:
                     meta[key] = float(v)
                 elif key == "floor_y" and abs(float(v)) <= FLOOR_RANGE_M:
                     meta[key] = v
@@ -502,10 +502,15 @@ class LiveSession:
 
     # -- the end -------------------------------------------------------------------------
     def take_meta(self) -> dict:
+        """The take file's metadata: the calibration's (with the role the duet
+        was made for), its body offsets and how it was recorded."""
         c = self.calibration
-        meta = dict(c.meta())  # (with the role the duet was made for)
-        for key, v in zip(("head_offset_m", "lhand_offset_m", "rhand_offset_m"),
-                          (c.offsets.head, c.offsets.lhand, c.offsets.rhand)):
+        return self._finish_meta(dict(c.meta()), c.offsets)
+
+    def _finish_meta(self, meta, offsets) -> dict:
+        from ..formats.devices import META_OFFSET_KEYS
+
+        for key, v in zip(META_OFFSET_KEYS, (offsets.head, offsets.lhand, offsets.rhand)):
             if v is not None:
                 meta[key] = _offset_text(v)
         if self.describe:
@@ -563,13 +568,14 @@ class LiveSession:
             if self.calibration is not None:
                 meta = self.take_meta()
             else:
+                from ..formats.devices import offsets_for
+
                 o = self.options
                 meta = self._meta()
                 for key, v in (("height_m", o.height), ("floor_y", o.floor_y), ("devices", o.devices)):
                     if v is not None:
                         meta[key] = v
-                if self.describe:
-                    meta["recorded"] = self.describe.strip().rstrip(":")
+                meta = self._finish_meta(meta, offsets_for(meta, o.head_offset, o.hand_offset))
             rows = self.rows
             return Take(rows.time[:n].copy(), rows.pos[:n].copy(), rows.quat[:n].copy(), meta)
 

@@ -25,8 +25,10 @@ import numpy as np
 
 from ..formats.take import Take
 from .protocol import META_KEYS, sample_datagrams
+from .session import META_WAIT_S, LiveOptions
 
-META_EVERY_SAMPLE_S = 4.0  # > the receiver's calibration window and wait (session.META_WAIT_S): 1 s + 2 s
+# past the receiver's calibration window and its wait for announced metadata, with a second to spare
+META_EVERY_SAMPLE_S = LiveOptions.calibration_s + META_WAIT_S + 1.0
 META_EVERY_S = 0.25
 
 

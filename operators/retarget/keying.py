@@ -32,8 +32,9 @@ def mark_output(action):
 
 def release(action):
     """Remove ``action``, a retarget's output that a new one replaced, when nothing
-    uses it any more (a fake user aside); one the user assigned elsewhere stays."""
-    if is_output(action) and action.users == int(action.use_fake_user):
+    uses it any more; one the user assigned elsewhere or gave a fake user (Blender's
+    "keep this") stays. (The retarget gives its outputs no fake user.)"""
+    if is_output(action) and action.users == 0:
         bpy.data.actions.remove(action)
 
 
