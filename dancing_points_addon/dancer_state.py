@@ -11,7 +11,17 @@ import numpy as np
 from . import features as F
 from .representation import (DEVICE_FROM_HEAD, blend_root, pose_to_world, root_compose, root_from_head, rot_to_local,
                              to_local)
-from .skeleton import HEAD_BONE, TRACKED
+from .skeleton import FEET, HEAD_BONE, TRACKED
+
+# A tracker state whose four foot points all stay this high above the floor for
+# more than this many frames has lost its footing: a closed-loop drift of the
+# autoregressive tracker that long takes showed after 20-30 s (legs folded under
+# a raised pelvis, the feet floating 25-90 cm up, never recovering). The state is
+# then pulled this share of the way to the tracker's start-up pose each frame until
+# a foot is down again. (metres at the tracker's scale, frames, share; chosen on
+# closed-loop runs of each take's train frames, and never active on the SPEC §6
+# val segments: docs/experiments.md)
+FOOTING = (0.15, 5, 0.5)
 
 
 class DancerState:
@@ -22,10 +32,25 @@ class DancerState:
         self.default_pose = default_pose
         self.root = None  # F0 (4,)
         self.pose = None  # (POSE_DIM,)
+        self.off_floor = 0  # frames in a row with every foot point over FOOTING's height
+        self.footing_pulls = 0  # frames the state was pulled back (keep_footing)
 
     def place(self, root):
         self.root = np.asarray(root, dtype=np.float64).copy()
         self.pose = self.default_pose.copy()
+        self.off_floor = 0
+
+    def keep_footing(self, footing=FOOTING) -> bool:
+        """After a step: a state that has lost its footing (:data:`FOOTING`) is
+        pulled towards the start-up pose. Returns whether it was."""
+        height, frames, share = footing
+        low = float(F.pose_positions(self.pose)[FEET, 1].min())
+        self.off_floor = self.off_floor + 1 if low > height else 0
+        if self.off_floor <= frames:
+            return False
+        self.pose = self.pose + share * (self.default_pose - self.pose)
+        self.footing_pulls += 1
+        return True
 
     def advance(self, key_roots, key_tracked, observed_root=None, pull=None):
         """One tracker step; returns world positions, rotations, contacts of the new

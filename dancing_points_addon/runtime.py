@@ -590,6 +590,7 @@ class Synthesizer:
             self._leg_joints.twist(*rigid[1])
         for d, (p, r), c in zip((self.leader, self.follower), rigid, (lc, fc)):
             d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
+        self.leader.keep_footing()  # the tracked dancer's state back on its feet if it drifted off them
         if self._anchor > 0.0:  # her output's hip joints turn with her pelvis (her state's need not)
             self._leg_joints.hips(*rigid[1])
         if self._hip_twist is not None:  # her hips towards where the hip-heading network says she faces

@@ -670,3 +670,20 @@ def test_options_check_themselves():
     assert FootLocker().options == FootLockOptions() and FootLocker().on == 0.6
     with pytest.raises(AttributeError):
         o.holds.reach = 2.0  # frozen
+
+
+def test_a_long_take_keeps_his_feet_on_the_floor(synth):
+    """Take 60_08 whole (57 s): the tracked dancer's tracker state used to lose
+    its footing after 31 s (legs folded under a raised pelvis, the feet 25-90
+    cm up to the end). His feet stay down as on short takes (the mocap's
+    lowest foot point is 5 cm up at the median); the state was pulled back
+    (``DancerState.keep_footing``) on few frames."""
+    take = take_from_motion(load_amc(SALSA / "60_08.amc"))
+    duet = synth.synthesize(take)
+    low = duet.leader_positions[:, [3, 4, 8, 9], 1].min(1) - float(duet.calibration.floor_y)
+    pulls = synth.leader.footing_pulls
+    print(f"\n60_08 whole, {duet.n_frames} frames: his lowest foot point median {np.median(low) * 100:.1f} cm, "
+          f"over 15 cm on {np.mean(low > 0.15) * 100:.1f} % of frames, highest {low.max() * 100:.1f} cm; "
+          f"state pulled back on {pulls} frames")
+    assert np.median(low) < 0.08 and np.mean(low > 0.15) < 0.05 and low.max() < 0.3
+    assert pulls < 0.1 * duet.n_frames
