@@ -29,6 +29,7 @@ from .argtypes import (CLI_SIGNALS, EXIT_OK, Parser, Terminated, add_calibration
                        calibration_options, exit_for, height_metres, offset_metres, positive_float, positive_int,
                        printable, thread_count)
 from .errors import InputError
+from .formats.files import check_output_path
 from .live.cli import parser_live, parser_stream
 
 
@@ -48,17 +49,6 @@ def add_input_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--height", type=height_metres, default=None, metavar="H",
                    help="the tracked dancer's standing height in metres (stored as height_m; default: the "
                         "take's, else estimated from the take)")
-
-
-def check_output_path(path) -> None:
-    """Fail early, before any work, when ``path`` cannot be an output file."""
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise InputError(path, "output folder does not exist")
-    if os.path.isdir(path):
-        raise InputError(path, "output path is a folder")
-    if not os.access(folder, os.W_OK):
-        raise InputError(path, "output folder is not writable")
 
 
 def check_not_input(args, outputs) -> None:

@@ -159,6 +159,10 @@ def test_missing_input_and_bad_outputs(tmp_path):
     duet.write_bytes(b"a duet")
     for path, old in ((duet, b"a duet"), (tmp_path / "take", None)):
         assert_bad_input(run_cli("extract", amc, "-o", path), path, "must end in .csv", old=old)
+    if sys.platform.startswith("linux"):  # a folder where no file can be made, even by root (sysfs)
+        res = run_cli("synthesize", amc, "-o", "/sys/dp_out.npz")
+        assert res.returncode == 2 and "/sys/dp_out.npz: output folder is not writable" in res.stderr, res.stderr
+        assert "leader tracked" not in res.stdout  # refused before the work, not after it
 
 
 @pytest.mark.parametrize("args,frag", [

@@ -14,9 +14,9 @@ from __future__ import annotations
 import collections
 import json
 import os
-import tempfile
 
 from ..errors import InputError
+from ..formats.files import writable_folder
 
 REPORT_NAME = "batch_report.json"
 STATUSES = ("ok", "failed", "skipped", "interrupted", "pending")
@@ -80,8 +80,6 @@ def check_report_path(path, overwrite=False, explicit=True) -> None:
                                f"replace it, or choose another --report path)")
     folder = os.path.dirname(os.path.abspath(path))
     if os.path.isdir(folder):  # (the output folder may be made later; its own check is the outputs')
-        try:  # a file made and removed: what writing the report at the end will need (os.access trusts root)
-            with tempfile.NamedTemporaryFile(dir=folder, prefix=".dp_report_probe_"):
-                pass
-        except OSError as exc:
-            raise InputError(path, f"{flag}cannot write the report there ({exc.strerror or exc})") from None
+        why = writable_folder(folder)  # what writing the report at the end will need
+        if why is not None:
+            raise InputError(path, f"{flag}cannot write the report there ({why})")

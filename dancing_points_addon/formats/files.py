@@ -28,6 +28,29 @@ def _check_target(path) -> str:
     return path
 
 
+def writable_folder(folder) -> str | None:
+    """None when a file can be made in ``folder``, else why not: a file is made
+    and removed (``os.access`` says yes to root on a read-only file system)."""
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".dp_probe_"):
+            return None
+    except OSError as exc:
+        return exc.strerror or str(exc)
+
+
+def check_output_path(path) -> None:
+    """Fail early, before any work, when ``path`` cannot be an output file:
+    its folder missing or not writable, or the path a folder."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(path, "output folder does not exist")
+    if os.path.isdir(path):
+        raise InputError(path, "output path is a folder")
+    why = writable_folder(folder)
+    if why is not None:
+        raise InputError(path, f"output folder is not writable ({why})")
+
+
 def _temp_for(path) -> tuple:
     """``(fd, name)`` of a new hidden temporary file beside ``path``."""
     folder = os.path.dirname(os.path.abspath(path))

@@ -15,6 +15,7 @@ import time
 from ..argtypes import (CLI_SIGNALS, EXIT_OK, add_calibration_arguments, calibration_options, height_metres,
                         port_number, positive_float, printable, share, thread_count)
 from ..errors import InputError, UserError
+from ..formats.files import check_output_path
 from . import OSC_PORT, VMC_PORT
 
 STATUS_EVERY_S = 0.5  # on a terminal the status line is redrawn this often
@@ -84,18 +85,6 @@ def parser_stream(sub) -> None:
 
 
 # --------------------------------------------------------------------------- live
-
-def check_output_path(path) -> None:
-    """Fail before anything is received when ``path`` cannot be an output file
-    (the rules of ``synthesize``'s output)."""
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise InputError(path, "output folder does not exist")
-    if os.path.isdir(path):
-        raise InputError(path, "output path is a folder")
-    if not os.access(folder, os.W_OK):
-        raise InputError(path, "output folder is not writable")
-
 
 def _outputs(out):
     check_output_path(out)
