@@ -664,3 +664,30 @@ def test_fbx_export_error_is_its_real_last_line(tmp_path):
     assert "Traceback" in raw  # what Blender gives
     assert msg.startswith("take.csv: FileNotFoundError:") and "x.fbx" in msg, msg
     assert "Traceback" not in msg and "Location" not in msg and "\n" not in msg
+
+
+@pytest.mark.skipif(os.name != "posix", reason="the folder lock is an flock (POSIX)")
+def test_a_pair_of_outputs_is_installed_under_a_folder_lock(tmp_path):
+    """Two runs writing the same pair (``-o x.bvh``: x_leader.bvh, x_follower.bvh)
+    could leave one run's leader beside the other's follower (4 of 400 rounds
+    of a stress test). The pair is installed under a lock on its folder: while
+    another process holds it, nothing is installed; then the whole pair is."""
+    import fcntl
+
+    pair = [tmp_path / "x_leader.bvh", tmp_path / "x_follower.bvh"]
+    code = textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(ROOT)!r})
+        from dancing_points_addon.formats.files import atomic_outputs
+        atomic_outputs([({str(pair[0])!r}, lambda f: f.write("B")), ({str(pair[1])!r}, lambda f: f.write("B"))])
+    """)
+    fd = os.open(tmp_path, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        proc = subprocess.Popen([sys.executable, "-c", code])
+        time.sleep(1.5)
+        assert proc.poll() is None and not any(p.exists() for p in pair)  # waiting for the lock
+    finally:
+        os.close(fd)
+    assert proc.wait(timeout=60) == 0
+    assert [p.read_text() for p in pair] == ["B", "B"]

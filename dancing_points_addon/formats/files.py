@@ -120,13 +120,41 @@ def atomic_outputs(writers, mode="w", **kwargs) -> None:
             _unlink(tmp)
 
 
+@contextlib.contextmanager
+def _folder_lock(folder):
+    """One installer of several files at a time in ``folder``: an ``flock`` on
+    the folder itself (POSIX; elsewhere, or when it cannot be opened, none), so
+    that two runs writing the same pair leave one run's whole pair."""
+    try:
+        import fcntl
+        fd = os.open(folder, os.O_RDONLY)
+    except (ImportError, OSError):
+        yield
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # (releases the lock)
+
+
 def install_all(moves, replace=True) -> None:
     """Rename each finished temporary file onto its final path (``moves``: a list
     of ``(tmp, final)`` in one file system), all or none: when one rename fails
     the files renamed before it are put back as they were (an existing file from
     a hard-link backup taken first; a new one removed). ``replace=False``: never
     over an existing file (:class:`FileExistsError` naming it, also when it
-    appears meanwhile). The temporary files of a failed call are the caller's."""
+    appears meanwhile). The temporary files of a failed call are the caller's.
+    Several files are installed under a lock on the first one's folder
+    (:func:`_folder_lock`)."""
+    if len(moves) > 1:
+        with _folder_lock(os.path.dirname(os.path.abspath(moves[0][1]))):
+            _install_all(moves, replace)
+    else:
+        _install_all(moves, replace)
+
+
+def _install_all(moves, replace) -> None:
     done = []  # (final, backup or None, replaced an existing file)
     try:
         for tmp, final in moves:
