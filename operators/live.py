@@ -117,7 +117,7 @@ class StopReport(UserError):
 
 
 _RUN = None
-_LAST_ERROR = ""  # why the last session stopped on its own (a failing tick), and where its take went
+_LAST_ERROR = ""  # why the last live recording stopped on its own (a failing tick), and where its take went
 
 
 def running():
@@ -125,7 +125,7 @@ def running():
 
 
 def last_error():
-    """The line saying why the last session stopped on its own ("" when it did not)."""
+    """The line saying why the last live recording stopped on its own ("" when it did not)."""
     return _LAST_ERROR
 
 
@@ -415,7 +415,7 @@ def stop(context=None, keep=True, collection=True, bake_duet=None, folder=None):
 @persistent
 def _on_load_pre(*_args):
     """Another file is loaded while live: stop, keeping the take file only
-    (the last session's error is the old file's: not shown any more)."""
+    (the last recording's error is the old file's: not shown any more)."""
     global _LAST_ERROR
     _LAST_ERROR = ""
     if _RUN is None:

@@ -39,7 +39,7 @@ class VIEW3D_PT_dancing_points_live(SubPanel, bpy.types.Panel):
         layout.prop(settings, "bake")
         if run is None:
             layout.operator("dancing_points.live_start", text="Start", icon='PLAY')
-            if live.last_error():  # the last session stopped on an error: why, and where its take went
+            if live.last_error():  # the last recording stopped on an error: why, and where its take went
                 layout.box().label(text=live.last_error(), icon='ERROR')
             return
         layout.operator("dancing_points.live_stop", text="Stop (Keep Take)", icon='SNAP_FACE')
