@@ -22,6 +22,8 @@ from .skeleton import FEET, HEAD_BONE, TRACKED
 # closed-loop runs of each take's train frames, and never active on the SPEC §6
 # val segments: docs/experiments.md)
 FOOTING = (0.15, 5, 0.5)
+# Where the four foot points' heights lie in a pose feature vector (read every frame).
+_FOOT_Y = tuple(int(F.POSE_POS.start + 3 * j + 1) for j in FEET)
 
 
 class DancerState:
@@ -44,7 +46,8 @@ class DancerState:
         """After a step: a state that has lost its footing (:data:`FOOTING`) is
         pulled towards the start-up pose. Returns whether it was."""
         height, frames, share = footing
-        low = float(F.pose_positions(self.pose)[FEET, 1].min())
+        pose = self.pose
+        low = min(float(pose[i]) for i in _FOOT_Y)
         self.off_floor = self.off_floor + 1 if low > height else 0
         if self.off_floor <= frames:
             return False
