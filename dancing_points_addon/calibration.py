@@ -19,6 +19,21 @@ gives neither the height nor, exactly, the floor):
 * **floor**, when the height is given and no ``floor_y`` is: the same upright
   head height against the one the given height stands for. A floor a headset
   calibrated 10 cm off is then found to within the wearer's posture.
+
+Device orientations (SPEC §3 "these orientations are measured"):
+
+* a **turn** given for a device (metadata ``head_turn`` / ``lhand_turn`` /
+  ``rhand_turn``, or ``--head-turn`` / ``--hand-turn``; see
+  :class:`~.formats.devices.DeviceTurns`) is taken off its poses before they
+  are read;
+* orientations that **carry nothing** are not followed: a device whose
+  orientation turns faster than :data:`ORIENTATION_SPEED_LIMIT` on the median
+  row (no head or hand turns so; a sender that fills the orientation with
+  noise does), or every device of a take whose metadata say
+  ``orientations=none`` (a rig whose bones could not be read as SPEC §3 means
+  them). Such a device's points are still read (an ``openxr`` device's body
+  offset then without its orientation: straight down for the head, none for
+  a hand), and :meth:`Calibration.notice` says so in one line.
 """
 from __future__ import annotations
 
@@ -27,8 +42,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
-from .formats.devices import (DEVICE_KINDS, DeviceOffsets, check_devices, offsets_for, openxr_to_points,
-                              points_to_openxr)
+from .formats.devices import (DEVICE_KINDS, REFERENCE_HEIGHT_M, DeviceOffsets, DeviceTurns, check_devices, offsets_for,
+                              openxr_to_points, points_to_openxr, turns_for)
 from .formats.limits import FLOOR_RANGE_M
 from .formats.take import Take
 from .representation import root_from_head, to_local, to_world
@@ -43,6 +58,12 @@ TRAIN_HEAD_HEIGHT = 1.530
 HEAD_PERCENTILE = 90.0
 ESTIMATE_RANGE_M = (1.0, 2.3)  # an estimate beyond these is clipped (a child to a very tall adult)
 ROLES = ("leader", "follower")  # SPEC §3 role: whose three points a take holds
+# A device whose orientation turns faster than this on the median row (degrees a
+# second) carries no orientation. The salsa takes' devices turn 17-132 (head) and
+# 92-232 (hands) degrees a second on the median row (val frames); an orientation
+# drawn at random on every row of a 60 Hz take turns about 7,500.
+ORIENTATION_SPEED_LIMIT = 1500.0
+DEVICE_LABELS = ("head", "left hand", "right hand")
 
 
 @dataclass(frozen=True)
@@ -61,16 +82,124 @@ class Calibration:
     floor_source: str = "assumed"
     offsets: DeviceOffsets = field(default_factory=DeviceOffsets)
     role: str = "leader"
+    turns: DeviceTurns = field(default_factory=DeviceTurns)
+    # per device (head, lhand, rhand): whether the tracked dancer follows its orientation
+    followed: tuple = (True, True, True)
+    # per device: the median speed (degrees a second) at which its orientation turns (NaN: unknown)
+    turn_speeds: tuple = (float("nan"),) * 3
+    orientations_given: str = "measured"  # the take's ``orientations`` metadata
 
     def describe(self) -> str:
         """One line for a user: what was given and what estimated."""
-        return (f"{self.role} tracked, height {self.height:.2f} m ({self.height_source}), floor at "
+        line = (f"{self.role} tracked, height {self.height:.2f} m ({self.height_source}), floor at "
                 f"y = {self.floor_y:+.3f} m ({self.floor_source}), devices {self.devices}")
+        if self.turns:
+            line += ", device turns " + "; ".join(f"{k} {v}" for k, v in self.turns.meta().items())
+        return line
+
+    def notice(self) -> str | None:
+        """One line when some device orientations are not followed, else None."""
+        off = [d for d, f in zip(DEVICE_LABELS, self.followed) if not f]
+        if not off:
+            return None
+        if self.orientations_given == "none":
+            why = "the take says its orientations carry nothing (orientations=none)"
+        else:
+            speeds = [f"{s:,.0f}" for s, f in zip(self.turn_speeds, self.followed) if not f]
+            why = (f"they turn {', '.join(speeds)} degrees a second on the median row (no body turns faster than "
+                   f"{ORIENTATION_SPEED_LIMIT:,.0f}): they carry no orientation")
+        return f"the {', '.join(off)} orientations are not followed: {why}; only the points are used"
 
     def meta(self) -> dict:
         """The take metadata (SPEC §3 keys) that reproduce this calibration."""
-        return {"height_m": f"{self.height:.4f}", "floor_y": f"{self.floor_y:.4f}", "devices": self.devices,
-                "role": self.role}
+        out = {"height_m": f"{self.height:.4f}", "floor_y": f"{self.floor_y:.4f}", "devices": self.devices,
+               "role": self.role}
+        out.update(self.turns.meta())
+        if self.orientations_given == "none":
+            out["orientations"] = "none"
+        return out
+
+    def read(self, positions, quats):
+        """Device poses ``(..., 3, 3)``, ``(..., 3, 4)`` of the take's frame as
+        SPEC §2 points and the orientations they carry (:func:`read_poses`)."""
+        return read_poses(positions, quats, self.devices, self.offsets.at(self.height), self.turns, self.followed,
+                          self.height)
+
+
+# An openxr hand whose grip orientation is not followed: its wrist is put the grip's
+# body offset away from the fist, towards the shoulder, taken this far below the base
+# of the skull and to its side (m, for a wearer of REFERENCE_HEIGHT_M). Measured on
+# the salsa takes' val frames: the wrist 4.3 cm off on average, against 7.4 cm for
+# the fist itself and 4.0 cm towards the true shoulder.
+SHOULDER_BELOW_HEAD = 0.22
+SHOULDER_SIDE = 0.17
+
+
+def read_poses(positions, quats, devices, offsets, turns: DeviceTurns = DeviceTurns(),
+               followed=(True, True, True), height=TRAIN_HEIGHT):
+    """Device poses ``(..., 3, 3)``, ``(..., 3, 4)`` as SPEC §2 points and the
+    orientations they carry: the ``turns`` taken off, then for ``openxr``
+    devices the body ``offsets (3, 3)`` (:meth:`DeviceOffsets.at`) applied
+    (:func:`~.formats.devices.openxr_to_points`). An ``openxr`` device whose
+    orientation is not ``followed`` is offset without it: the head straight
+    down by its offset's height, a hand's wrist towards the shoulder
+    (:data:`SHOULDER_BELOW_HEAD`, :data:`SHOULDER_SIDE`, scaled to the wearer's
+    ``height``). Lost devices (NaN) stay lost."""
+    positions = np.asarray(positions, dtype=np.float64)
+    quats = np.asarray(quats, dtype=np.float64)
+    if turns:
+        quats = turns.remove(quats)
+    if devices != "openxr":
+        return positions, quats
+    if all(followed):
+        return openxr_to_points(positions, quats, offsets)
+    offsets = np.array(offsets, dtype=np.float64)
+    reach = np.linalg.norm(offsets, axis=-1)
+    drop = offsets[0, 1]
+    kept = offsets.copy()
+    for d in range(3):
+        if not followed[d]:
+            kept[d] = 0.0
+    points, quats = openxr_to_points(positions, quats, kept)
+    points = points.copy()
+    if not followed[0]:
+        points[..., 0, 1] += drop
+    s = float(height) / REFERENCE_HEIGHT_M
+    head = points[..., 0, :]
+    left = np.zeros(head.shape)
+    if followed[0]:  # the body's left: the head device's +X is its right
+        R = quat_to_matrix(np.nan_to_num(quats[..., 0, :]))
+        left = -R[..., :, 0]
+        left[..., 1] = 0.0
+        left /= np.maximum(np.linalg.norm(left, axis=-1, keepdims=True), 1e-9)
+    for d, side in ((1, 1.0), (2, -1.0)):
+        if followed[d]:
+            continue
+        shoulder = head + side * SHOULDER_SIDE * s * left
+        shoulder[..., 1] -= SHOULDER_BELOW_HEAD * s
+        to = shoulder - points[..., d, :]
+        n = np.linalg.norm(to, axis=-1, keepdims=True)
+        points[..., d, :] += to * np.where(n > reach[d], reach[d] / np.maximum(n, 1e-9), 0.0)
+    return points, quats
+
+
+def orientation_speeds(take: Take) -> tuple:
+    """Per device the median speed (degrees a second) at which its orientation
+    turns between consecutive rows where it is tracked (NaN: fewer than 2 such rows)."""
+    q = np.asarray(take.quats, dtype=np.float64)
+    dt = np.diff(np.asarray(take.time, dtype=np.float64))
+    out = []
+    for d in range(q.shape[1]):
+        a, b = q[:-1, d], q[1:, d]
+        ok = np.isfinite(a).all(-1) & np.isfinite(b).all(-1)
+        if not ok.any():
+            out.append(float("nan"))
+            continue
+        na, nb = np.linalg.norm(a[ok], axis=-1), np.linalg.norm(b[ok], axis=-1)
+        dots = np.abs((a[ok] * b[ok]).sum(-1)) / (na * nb)
+        angle = 2.0 * np.degrees(np.arccos(np.clip(dots, 0.0, 1.0)))
+        out.append(float(np.median(angle / dt[ok])))
+    return tuple(out)
 
 
 def upright_head(head_y) -> float:
@@ -103,10 +232,13 @@ def _meta_float(meta, key, path):
     return x
 
 
-def head_points(take: Take, devices: str, offsets: DeviceOffsets, height) -> np.ndarray:
+def head_points(take: Take, devices: str, offsets: DeviceOffsets, height, turns: DeviceTurns = DeviceTurns(),
+                followed=(True, True, True)) -> np.ndarray:
     """``(T, 3)`` the base of the skull on every row (NaN where the head is lost)."""
     if devices == "joints":
         return np.asarray(take.positions[:, 0], dtype=np.float64)
+    if turns or not followed[0]:
+        return read_poses(take.positions, take.quats, devices, offsets.at(height), turns, followed, height)[0][:, 0]
     R = quat_to_matrix(np.nan_to_num(take.quats[:, 0]))
     return take.positions[:, 0] + R @ offsets.at(height)[0]
 
@@ -119,12 +251,13 @@ def check_role(value, path="<take>", line=None) -> str:
     return v
 
 
-def head_heights(take: Take, devices: str, offsets: DeviceOffsets, height) -> np.ndarray:
+def head_heights(take: Take, devices: str, offsets: DeviceOffsets, height, turns: DeviceTurns = DeviceTurns(),
+                 followed=(True, True, True)) -> np.ndarray:
     """The heights of the base of the skull at the networks' 30 Hz frames where
     the head is tracked: converted on the take's own rows, then interpolated, so
     a take and its copy at another rate (a 60 Hz file and the 30 fps keys
     Blender imports it to) estimate the same height and floor."""
-    y = head_points(take, devices, offsets, height)[:, 1]
+    y = head_points(take, devices, offsets, height, turns, followed)[:, 1]
     ok = np.isfinite(y) & np.isfinite(take.quats[:, 0]).all(-1)
     if len(y) < 2:
         return y[ok]
@@ -135,46 +268,59 @@ def head_heights(take: Take, devices: str, offsets: DeviceOffsets, height) -> np
 
 
 def calibrate(take: Take, height=None, floor_y=None, devices=None, offsets: DeviceOffsets | None = None,
-              head_offset=None, hand_offset=None, role=None) -> Calibration:
+              head_offset=None, hand_offset=None, role=None, head_turn=None, hand_turn=None) -> Calibration:
     """The calibration of ``take``: each of ``devices``, ``height``, ``floor_y``
     and ``role`` given here wins over the take's metadata (``devices``,
     ``height_m``, ``floor_y``, ``role``), which wins over an estimate (see the
     module's docstring) or the default. ``offsets`` replaces the take's device
     offsets; ``head_offset`` / ``hand_offset`` (x,y,z at the wearer's size)
-    replace single ones."""
+    replace single ones; ``head_turn`` / ``hand_turn`` (quaternions) the
+    take's device turns. Which device orientations are followed: those that
+    carry one (see the module's docstring)."""
     path = take.source or "<take>"
     meta = take.meta
     devices = check_devices(devices if devices is not None else meta.get("devices") or "joints", path)
     role = check_role(role if role is not None else meta.get("role") or "leader", path)
     if offsets is None:
         offsets = offsets_for(meta, head_offset, hand_offset, path)
+    turns = turns_for(meta, head_turn, hand_turn, path)
+    given_o = str(meta.get("orientations") or "measured").lower()
+    speeds = orientation_speeds(take)
+    followed = tuple(bool(given_o != "none" and not s > ORIENTATION_SPEED_LIMIT) for s in speeds)
     if height in ("auto", ""):
         height = None
     given_h = float(height) if height is not None else take.height
     given_f = float(floor_y) if floor_y is not None else _meta_float(meta, "floor_y", path)
-    seen = head_heights(take, devices, offsets, TRAIN_HEIGHT).size > 0  # the head on a 30 Hz frame
+
+    def heads(h):
+        return head_heights(take, devices, offsets, h, turns, followed)
+
+    def made(h, h_src, f, f_src):
+        return Calibration(devices, h, h_src, f, f_src, offsets, role, turns, followed, speeds, given_o)
+
+    seen = heads(TRAIN_HEIGHT).size > 0  # the head on a 30 Hz frame
     if given_h is not None:
         h_src, h = "given", given_h
         if given_f is not None:
             f_src, f = "given", given_f
         elif seen:
-            f_src, f = "estimated", floor_from_head(head_heights(take, devices, offsets, h), h)
+            f_src, f = "estimated", floor_from_head(heads(h), h)
             if abs(f) > FLOOR_RANGE_M:
                 raise InputError(path, f"with a height of {h:.2f} m the floor would lie at y = {f:+.2f} m: "
                                        f"check the height, or give floor_y")
         else:
             f_src, f = "assumed", 0.0
-        return Calibration(devices, h, h_src, f, f_src, offsets, role)
+        return made(h, h_src, f, f_src)
     f_src, f = ("given", given_f) if given_f is not None else ("assumed", 0.0)
     if not seen:
-        return Calibration(devices, TRAIN_HEIGHT, "assumed", f, f_src, offsets, role)
+        return made(TRAIN_HEIGHT, "assumed", f, f_src)
     h = TRAIN_HEIGHT
     # openxr: the skull base depends on the offsets, which scale with the height: a fixed point
     for _ in range(1 if devices == "joints" else 20):
-        h, h0 = height_from_head(head_heights(take, devices, offsets, h) - f), h
+        h, h0 = height_from_head(heads(h) - f), h
         if abs(h - h0) < 1e-9:
             break
-    return Calibration(devices, h, "estimated", f, f_src, offsets, role)
+    return made(h, "estimated", f, f_src)
 
 
 def apply_calibration(take: Take, calib: Calibration, fill_start: bool = True) -> Take:
@@ -184,10 +330,8 @@ def apply_calibration(take: Take, calib: Calibration, fill_start: bool = True) -
     ``fill_start``: rows before a device is first seen take its first pose
     (the hands relative to the head), so a take that starts lost starts where
     the dancer is first seen."""
-    pos = np.array(take.positions, dtype=np.float64)
-    quats = np.array(take.quats, dtype=np.float64)
-    if calib.devices == "openxr":
-        pos, quats = openxr_to_points(pos, quats, calib.offsets.at(calib.height))
+    pos, quats = calib.read(take.positions, take.quats)
+    pos, quats = np.array(pos, dtype=np.float64), np.array(quats, dtype=np.float64)
     if calib.floor_y:
         pos[..., 1] -= calib.floor_y
     if fill_start:

@@ -32,7 +32,6 @@ from .dancer_state import DancerState, advance_together
 from .device_follow import DeviceFollow, hand_flex, limit_rotation
 from .duet import Duet, DuetFrame
 from .follower import OUT_SMOOTH, FollowerOptions, HandHold, HipTwist, Placement, Separation, hip_heading_from_probs
-from .formats.devices import openxr_to_points
 from .nets import contact_floor_levels, load_nets
 from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose,
                    move_keeping_feet)
@@ -106,6 +105,8 @@ class SynthesisOptions:
     head_offset: tuple | None = None
     hand_offset: tuple | None = None
     offsets: object | None = None
+    head_turn: tuple | None = None
+    hand_turn: tuple | None = None
     follow_devices: bool = True
     role: str | None = None
 
@@ -282,7 +283,9 @@ class Synthesizer:
         self._devices_now = (None, None, None)  # this frame's measured device rotations (head, hands)
         devices = self.calibration.devices if self.calibration is not None else "joints"
         self._follow = None
-        if self.options.follow_devices:
+        # which devices' orientations the tracked dancer follows (those that carry one)
+        self._followed = self.calibration.followed if self.calibration is not None else (True, True, True)
+        if self.options.follow_devices and any(self._followed):
             self._follow = DeviceFollow(self.bone_vectors["leader"], "hand" if devices == "openxr" else "wrist",
                                         hand_flex=hand_flex(F.pose_rotations(self.default_pose["leader"])))
         self._prev_feet = [None, None]
@@ -456,10 +459,8 @@ class Synthesizer:
         if c is None:
             a, b = self._frame(positions, quats, valid)
             return (b, a) if self.role == "follower" else (a, b)
+        positions, quats = c.read(positions, quats)
         positions = np.array(positions, dtype=np.float64)
-        quats = np.asarray(quats, dtype=np.float64)
-        if c.devices == "openxr":
-            positions, quats = openxr_to_points(positions, quats, c.offsets.at(c.height))
         positions[:, 1] -= c.floor_y
         a, b = self._frame(positions, quats, valid)
         if c.floor_y:
@@ -496,8 +497,9 @@ class Synthesizer:
         tracked, head_rot, root = self._clean(positions, quats, valid)
         devices = None
         if self._follow is not None:  # what the devices measure this frame, for the head and hands to follow
-            devices = (head_rot if valid[0] else None,
-                       *(quat_to_matrix(quats[i]) if valid[i] else None for i in (1, 2)))
+            use = self._followed
+            devices = (head_rot if valid[0] and use[0] else None,
+                       *(quat_to_matrix(quats[i]) if valid[i] and use[i] else None for i in (1, 2)))
         if valid[0] and self.calibration is None and self.height is None:
             self._head_heights.append(tracked[0, 1])
         s = self.scale()
@@ -710,7 +712,8 @@ class Synthesizer:
         (:func:`~.calibration.calibrate`)."""
         o = self.options
         return calibrate(take, height=self.height, floor_y=o.floor_y, devices=o.devices, offsets=o.offsets,
-                         head_offset=o.head_offset, hand_offset=o.hand_offset, role=o.role)
+                         head_offset=o.head_offset, hand_offset=o.hand_offset, role=o.role,
+                         head_turn=o.head_turn, hand_turn=o.hand_turn)
 
     def synthesize(self, take, progress=None) -> Duet:
         """Calibrate ``take`` (its devices, the dancer's height, the floor:

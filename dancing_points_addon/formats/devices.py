@@ -36,6 +36,16 @@ random constant offset of a few centimetres per clip on each device (see
 (metadata ``head_offset_m``, ``lhand_offset_m``, ``rhand_offset_m``: ``x,y,z``
 in the device's own axes, metres at the wearer's own size) or on the command
 line (``--head-offset``, ``--hand-offset``).
+
+Device turns (:class:`DeviceTurns`). A device that reports another convention
+than the one above (a runtime's raw controller pose instead of the grip, a
+tracker strapped to the wrist, a headset worn tilted) differs from it by a
+constant rotation in the device's own axes: ``reported = true · turn``. Such a
+turn is given per take (metadata ``head_turn``, ``lhand_turn``, ``rhand_turn``:
+a quaternion ``w,x,y,z``) or on the command line (``--head-turn``,
+``--hand-turn``: the left hand's, mirrored for the right) and taken off every
+pose before the pose is read (``true = reported · turnᵀ``), for ``joints`` and
+``openxr`` takes alike.
 """
 from __future__ import annotations
 
@@ -106,6 +116,77 @@ def parse_offset(text, where="offset", path="<take>", line=None) -> tuple:
     if max(abs(c) for c in v) > MAX_OFFSET_M:
         raise InputError(path, f"{where} {text!r} is more than {MAX_OFFSET_M:g} m: not a body offset", line)
     return v
+
+
+META_TURN_KEYS = ("head_turn", "lhand_turn", "rhand_turn")
+
+
+def parse_turn(text, where="turn", path="<take>", line=None) -> tuple:
+    """``"w,x,y,z"`` (a rotation quaternion, normalised) as a tuple; an :class:`InputError` otherwise."""
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        q = np.array([float(p) for p in parts])
+    except ValueError:
+        q = np.zeros(0)
+    if q.shape != (4,) or not np.isfinite(q).all():
+        raise InputError(path, f"{where} must be a quaternion w,x,y,z, got {text!r}", line)
+    n = float(np.linalg.norm(q))
+    if not 0.5 <= n <= 2.0:
+        raise InputError(path, f"{where} {text!r} is not a rotation (its norm {n:.3g} is not within [0.5, 2])", line)
+    return tuple(float(v) for v in q / n)
+
+
+def mirror_turn(q) -> tuple:
+    """The left hand's turn as the right hand's: its mirror image across the body's
+    mid-plane (``w, x, −y, −z``), as the right grip's axes mirror the left's."""
+    w, x, y, z = q
+    return (w, x, -y, -z)
+
+
+@dataclass(frozen=True)
+class DeviceTurns:
+    """Per device (head, lhand, rhand) the constant rotation between the pose
+    it reports and the convention of SPEC §3, in its own axes
+    (``reported = true · turn``), a quaternion ``(w, x, y, z)``; None: none."""
+
+    head: tuple | None = None
+    lhand: tuple | None = None
+    rhand: tuple | None = None
+
+    def __bool__(self) -> bool:
+        return any(t is not None for t in (self.head, self.lhand, self.rhand))
+
+    def remove(self, quats) -> np.ndarray:
+        """``quats (..., 3, 4)`` with each device's turn taken off (``reported · turnᵀ``)."""
+        quats = np.array(quats, dtype=np.float64)
+        for d, t in enumerate((self.head, self.lhand, self.rhand)):
+            if t is not None:
+                q = quats[..., d, :]
+                R = quat_to_matrix(np.nan_to_num(q)) @ quat_to_matrix(np.asarray(t)).T
+                lost = ~np.isfinite(q).all(-1)
+                quats[..., d, :] = matrix_to_quat(R)
+                quats[..., d, :][lost] = np.nan
+        return quats
+
+    def meta(self) -> dict:
+        """The take metadata that give these turns."""
+        return {k: ",".join(f"{v:.6f}" for v in t) for k, t in zip(META_TURN_KEYS, (self.head, self.lhand, self.rhand))
+                if t is not None}
+
+
+def turns_for(meta: dict, head=None, hand=None, path="<take>") -> DeviceTurns:
+    """The device turns of a take: its metadata, then the user's (``head``: a
+    quaternion; ``hand``: the left hand's, mirrored for the right)."""
+    over = {}
+    for key, dev in zip(META_TURN_KEYS, ("head", "lhand", "rhand")):
+        if meta.get(key) not in (None, ""):
+            over[dev] = parse_turn(meta[key], key, path)
+    if head is not None:
+        over["head"] = tuple(head)
+    if hand is not None:
+        over["lhand"] = tuple(hand)
+        over["rhand"] = mirror_turn(hand)
+    return DeviceTurns(**over)
 
 
 def check_devices(value, path="<take>", line=None) -> str:

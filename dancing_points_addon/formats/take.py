@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
-from .devices import META_OFFSET_KEYS, parse_offset
+from .devices import META_OFFSET_KEYS, META_TURN_KEYS, parse_offset, parse_turn
 from .files import atomic_output, open_regular
 from .limits import FLOOR_RANGE_M, MAX_ABS_TIME_S, MAX_DURATION_S, MAX_GAP_S, check_height
 from ..rotations import axis_rotation, matrix_to_quat
@@ -38,6 +38,10 @@ DEVICE_FIELDS = ("px", "py", "pz", "qw", "qx", "qy", "qz")
 COLUMNS = ("time",) + tuple(f"{d}_{f}" for d in DEVICES for f in DEVICE_FIELDS)
 MAX_DISTANCE_M = 1000.0  # SPEC §3: positions farther than 1 km are rejected
 QUAT_NORM_RANGE = (0.5, 2.0)  # SPEC §3: other norms are rejected, these normalised
+# Metadata ``orientations``: ``measured`` (default: the devices' orientations mean
+# what SPEC §3 says) or ``none`` (they carry nothing: a rig whose bones could not be
+# read so; only the points are used, the head and hands do not follow them).
+ORIENTATION_VALUES = ("measured", "none")
 
 # The head device looks along its local -Z with +Y up (OpenXR); the CMU skull
 # (ASF bone ``head``) faces +Z at rest. Device-to-world = R_head · Ry(180°), so a
@@ -377,8 +381,14 @@ def _parse_meta(path, lineno, text, meta):
     elif key in META_OFFSET_KEYS:
         parse_offset(value, key, path, lineno)
         meta[key] = value
+    elif key in META_TURN_KEYS:
+        parse_turn(value, key, path, lineno)
+        meta[key] = value
+    elif key == "orientations" and value.lower() not in ORIENTATION_VALUES:
+        raise InputError(path, f"unknown orientations value {value!r} (expected {' or '.join(ORIENTATION_VALUES)})",
+                         lineno)
     else:
-        meta[key] = value.lower() if key in ("role", "devices") else value
+        meta[key] = value.lower() if key in ("role", "devices", "orientations") else value
 
 
 def _parse_header(path, lineno, line: bytes):
