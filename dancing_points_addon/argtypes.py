@@ -170,6 +170,21 @@ def offset_metres(text: str) -> tuple:
     return v
 
 
+def turn_quaternion(text: str) -> tuple:
+    """``w,x,y,z``: a rotation quaternion (normalised; its norm within [0.5, 2])."""
+    parts = text.split(",")
+    try:
+        q = tuple(float(p) for p in parts)
+    except ValueError:
+        q = ()
+    if len(q) != 4 or not all(math.isfinite(c) for c in q):
+        raise argparse.ArgumentTypeError(f"must be a quaternion w,x,y,z, got {text!r}")
+    n = math.sqrt(sum(c * c for c in q))
+    if not 0.5 <= n <= 2.0:
+        raise argparse.ArgumentTypeError(f"is not a rotation (its norm {n:.3g} is not within [0.5, 2]): {text!r}")
+    return tuple(c / n for c in q)
+
+
 def floor_metres(text: str) -> float:
     try:
         v = float(text)
@@ -199,6 +214,13 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hand-offset", type=offset_metres, default=None, metavar="X,Y,Z",
                    help="openxr: the left wrist from its grip pose, in the grip's axes (the right hand's is its "
                         "mirror image), metres (default: -0.025,0.07,0 for a 1.70 m wearer, scaled)")
+    p.add_argument("--head-turn", type=turn_quaternion, default=None, metavar="W,X,Y,Z",
+                   help="a headset whose pose is turned from SPEC §3's (worn tilted, another sender's axes): the "
+                        "constant rotation in its own axes, reported = true · turn (default: the take's head_turn)")
+    p.add_argument("--hand-turn", type=turn_quaternion, default=None, metavar="W,X,Y,Z",
+                   help="controllers in another convention (a raw controller pose, a wrist tracker): the left "
+                        "one's constant rotation in its own axes, the right one's its mirror image (default: the "
+                        "take's lhand_turn, rhand_turn)")
     p.add_argument("--no-device-follow", action="store_true",
                    help="leave the head and hands turned as the network has them (default: as the devices are)")
 
@@ -210,6 +232,7 @@ def calibration_options(o) -> dict:
     tup = lambda v: None if v is None else tuple(float(c) for c in v)  # noqa: E731
     return {"role": get("role"), "devices": get("devices"), "floor_y": get("floor_y"),
             "head_offset": tup(get("head_offset")), "hand_offset": tup(get("hand_offset")),
+            "head_turn": tup(get("head_turn")), "hand_turn": tup(get("hand_turn")),
             "follow_devices": not get("no_device_follow", False)}
 
 

@@ -23,6 +23,7 @@ import argparse
 import contextlib
 import os
 import signal
+import sys
 import threading
 
 from .argtypes import (CLI_SIGNALS, EXIT_OK, Parser, Terminated, add_calibration_arguments, after_imports,
@@ -171,6 +172,8 @@ def cmd_synthesize(args) -> int:
                                          **calibration_options(args)))
     duet = synth.synthesize(take)
     print(printable(f"{take.source}: {duet.calibration.describe()}"))
+    if duet.calibration.notice():
+        print(printable(f"warning: {take.source}: {duet.calibration.notice()}"), file=sys.stderr)
     if ext == ".npz":
         save_npz(duet, out)
     else:

@@ -61,7 +61,11 @@ class Duet:
         if c is not None:
             out.update(height_m=np.float64(c.height), height_source=np.array(c.height_source),
                        floor_y=np.float64(c.floor_y), floor_source=np.array(c.floor_source),
-                       devices=np.array(c.devices))
+                       devices=np.array(c.devices),
+                       # per device (head, lhand, rhand): its orientation followed, and its turn (w, x, y, z)
+                       orientations_followed=np.array(c.followed, dtype=bool),
+                       device_turns=np.array([t if t is not None else (1.0, 0.0, 0.0, 0.0) for t in
+                                              (c.turns.head, c.turns.lhand, c.turns.rhand)], dtype=np.float64))
         return out
 
 

@@ -120,6 +120,8 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
             s.floor_used, s.floor_source = c.floor_y, c.floor_source
         self.report({'INFO'}, "Baked '{:s}': {:d} frames (synthesis {:.1f} s, bake {:.1f} s); {:s}".format(
             duet_coll.name, duet.n_frames, t_synth, t_bake, c.describe() if c is not None else ""))
+        if c is not None and c.notice():
+            self.report({'WARNING'}, c.notice())
         from .stage import obstacles
         in_the_way = obstacles(context.scene)
         if in_the_way:

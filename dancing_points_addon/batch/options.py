@@ -76,6 +76,7 @@ def job_options(args, model_dir) -> dict:
             "role": getattr(args, "role", None), "devices": getattr(args, "devices", None),
             "floor_y": getattr(args, "floor_y", None),
             "head_offset": getattr(args, "head_offset", None), "hand_offset": getattr(args, "hand_offset", None),
+            "head_turn": getattr(args, "head_turn", None), "hand_turn": getattr(args, "hand_turn", None),
             "no_device_follow": bool(getattr(args, "no_device_follow", False)),
             "leader_rig": _abs(getattr(args, "leader_rig", None)),
             "follower_rig": _abs(getattr(args, "follower_rig", None))}
