@@ -5,6 +5,7 @@ the batch and the Blender import all apply them."""
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 
@@ -12,7 +13,9 @@ from ..errors import InputError
 from .files import regular_file
 from .limits import MAX_ABS_TIME_S, MAX_GAP_S, check_duration, check_height, check_rate
 from ..resample import NET_FPS, resample_plan, tracked_after_resampling
-from .take import DEVICES, MAX_DISTANCE_M, Take, read_take, take_from_motion, take_from_tracked
+from .rig_rest import rig_problem_line
+from .take import (DEVICES, MAX_DISTANCE_M, ORIENTATIONS_PROBLEM_KEY, Take, read_take, take_from_motion,
+                   take_from_tracked)
 from ..skeleton import JOINT_INDEX
 
 HAND_BONES = (JOINT_INDEX["lhand"], JOINT_INDEX["rhand"])  # what the grips of openxr devices are rigid on
@@ -164,6 +167,9 @@ def _load(path, asf=None, input_fps=None, height=None, want_hands=False, role=No
                                f"({type(exc).__name__}: {exc})") from None
     if height is not None:
         take.meta["height_m"] = height
+    problem = take.meta.pop(ORIENTATIONS_PROBLEM_KEY, None)
+    if problem:  # a full-body rig whose orientations cannot be read: said once, where it is read
+        print("warning: " + rig_problem_line(path, problem), file=sys.stderr)
     take.source = path
     return check_take(take, path), hands
 
@@ -207,4 +213,4 @@ def _take_from_bvh(path, input_fps=None, want_hands=False):
     # tp.fps is 1 / Frame Time, snapped to a whole rate when the file rounded it.
     time = np.arange(positions.shape[0]) / float(tp.fps)
     return take_from_tracked(time, positions, rotations[:, 0], rotations[:, 1], rotations[:, 2],
-                             {}, path), None
+                             {}, path, tp.problem), None

@@ -45,6 +45,22 @@ QUAT_NORM_RANGE = (0.5, 2.0)  # SPEC §3: other norms are rejected, these normal
 HEAD_DEVICE_OFFSET = axis_rotation("Y", np.pi)
 
 
+# Metadata of a take read from a full-body file whose rig's orientations cannot be read
+# (``formats.rig_rest``): ``orientations=none``. Its points are used; its quaternions are
+# placeholders (head facing +Z, hands at rest) and the device follow is off for it.
+ORIENTATIONS_KEY = "orientations"
+ORIENTATIONS_NONE = "none"
+# Why, said once by the reader that loads the take (not written to a take file).
+ORIENTATIONS_PROBLEM_KEY = "orientations_problem"
+
+
+def take_orientations_usable(meta) -> bool:
+    """Whether a take's device orientations mean what SPEC §3 says (False for
+    ``orientations=none``: a full-body file whose rig's orientations could not
+    be read; the synthesis then does not follow the devices' orientations)."""
+    return str((meta or {}).get(ORIENTATIONS_KEY, "")).strip().lower() != ORIENTATIONS_NONE
+
+
 @dataclass
 class Take:
     """``time (T,)`` seconds; ``positions (T, 3, 3)`` metres, motion space, device
@@ -512,13 +528,24 @@ def head_device_quat(head_rotations: np.ndarray) -> np.ndarray:
     return matrix_to_quat(np.asarray(head_rotations) @ HEAD_DEVICE_OFFSET)
 
 
-def take_from_tracked(time, positions, head_rot, lhand_rot, rhand_rot, meta=None, source="") -> Take:
+def take_from_tracked(time, positions, head_rot, lhand_rot, rhand_rot, meta=None, source="",
+                      problem="") -> Take:
     """A take from tracked-point positions ``(T, 3, 3)`` and global rotations of the
-    skull and the two wrists ``(T, 3, 3)`` each (SPEC §2 rest-pose convention)."""
+    skull and the two wrists ``(T, 3, 3)`` each (SPEC §2 rest-pose convention).
+
+    ``problem`` (why a rig's orientations cannot be read, ``formats.rig_rest``):
+    the rotations are replaced by the rest pose's and the take says
+    ``orientations=none`` (:func:`take_orientations_usable`), the reason in
+    :data:`ORIENTATIONS_PROBLEM_KEY`."""
+    meta = dict(meta or {})
+    if problem:
+        head_rot = lhand_rot = rhand_rot = np.broadcast_to(np.eye(3), np.shape(positions)[:1] + (3, 3))
+        meta[ORIENTATIONS_KEY] = ORIENTATIONS_NONE
+        meta[ORIENTATIONS_PROBLEM_KEY] = str(problem)
     quats = np.stack([head_device_quat(head_rot), matrix_to_quat(lhand_rot),
                       matrix_to_quat(rhand_rot)], axis=1)
     return Take(np.asarray(time, dtype=np.float64), np.array(positions, dtype=np.float64),
-                quats, dict(meta or {}), str(source))
+                quats, meta, str(source))
 
 
 def take_from_motion(motion: Motion) -> Take:
