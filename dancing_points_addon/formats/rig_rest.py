@@ -27,8 +27,9 @@ Rest pose (:func:`rest_corrections`)
   Otherwise ``R_spec = R_rig · Q`` with ``Q`` taking the SPEC rest frame of
   the bone to the rig's: for a forearm, the frames ``[d, f⊥, d × f⊥]`` of its
   rest direction ``d`` (its head to the wrist) and the body's forward ``f``,
-  ``Q = F_rig · F_specᵀ`` (SPEC: ``d = ±X``, ``f = +Z``); for the skull, the
-  body's rest frame (left, up, forward). The body's rest frame is measured
+  ``Q = F_rig · F_specᵀ`` (SPEC: ``d = ±X``, ``f = +Z``); for the skull, and
+  for a forearm within 5° of straight out (a T-pose, as the SPEC's own rest
+  pose of any dancer), the body's rest frame (left, up, forward). The body's rest frame is measured
   from the hips (else the shoulders, else the wrists) and the head, and
   snapped onto the axes when within 10° of them, as rest poses are.
 
@@ -58,6 +59,7 @@ ARM_DOWN_MAX_DEG = 70.0
 ARM_FORWARD_MAX_DEG = 25.0
 ELBOW_BEND_MAX_DEG = 25.0
 ARM_ASYMMETRY_MAX_DEG = 15.0
+T_POSE_TOL_DEG = 5.0
 
 
 class TrackedRig(NamedTuple):
@@ -177,7 +179,10 @@ def rest_corrections(rest_heads, parents, rig: TrackedRig, wrists=None):
         if u is None or _deg(u @ d) > ELBOW_BEND_MAX_DEG:
             return None, f"its rest pose's {side} arm is not straight (not a T- or A-pose)"
         down.append(below)
-        Q.append(bone_frame(d, fwd) @ bone_frame(np.array([s, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])).T)
+        if _deg(db[0] * s) <= T_POSE_TOL_DEG:  # a T-pose: straight out, as the SPEC's
+            Q.append(body)
+        else:
+            Q.append(bone_frame(d, fwd) @ bone_frame(np.array([s, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])).T)
     if abs(down[0] - down[1]) > ARM_ASYMMETRY_MAX_DEG:
         return None, (f"its rest pose's arms are not alike (left {down[0]:.0f}°, right {down[1]:.0f}° "
                       "below horizontal)")
