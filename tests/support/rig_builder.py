@@ -6,6 +6,7 @@ T-pose (the SPEC's rest pose) or an A-pose (arms 45° down), with optional
 random bone rolls, and keys it so that its bones follow the motion exactly;
 :func:`export_rig` writes it with Blender's own BVH or FBX exporter (default
 settings; an FBX gets a small skinned mesh so that it carries the rest pose).
+:func:`rig_bones` and :func:`spec_rest` need no ``bpy``.
 
 Where the naming has no forearm's-end bone (every one but ASF), the forearm
 runs from the elbow to the wrist and turns with SPEC bone ``lwrist`` (the
@@ -16,13 +17,10 @@ starts at the wrist and bends with SPEC ``lhand``.
 """
 from __future__ import annotations
 
-import bpy
 import numpy as np
 
 from dancing_points_addon.rotations import axis_rotation, matrix_to_quat
 from dancing_points_addon.skeleton import JOINT_INDEX, JOINT_NAMES, PARENTS, rest_joints
-
-from . import blender_scene_util as bsu
 
 # Motion space (Y up) -> Blender (Z up).
 C = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -149,6 +147,10 @@ def build_rig(motion, naming, pose="T", roll_seed=None, name="Rig", frame_start=
     (``'T'`` or ``'A'``), bone rolls random when ``roll_seed`` is given, keyed
     on frames ``frame_start ...`` with ``motion`` (a SPEC §2 :class:`Motion`);
     the scene's frame rate and range are set to the motion's."""
+    import bpy
+
+    from . import blender_scene_util as bsu
+
     bones = rig_bones(naming)
     J0, A = spec_rest(motion.bone_vectors, pose)
     rng = np.random.default_rng(roll_seed) if roll_seed is not None else None
@@ -207,10 +209,13 @@ def build_rig(motion, naming, pose="T", roll_seed=None, name="Rig", frame_start=
     return obj
 
 
-def export_rig(obj, path):
+def export_rig(obj, path, skinned=True):
     """Write the rig with Blender's own exporter (by the extension of ``path``),
     default settings; an FBX gets a small mesh deformed by the root bone so
-    that the file carries the rest pose."""
+    that the file carries the rest pose (``skinned=False``: none, and Blender
+    writes the pose of the current frame as the rest pose)."""
+    import bpy
+
     path = str(path)
     scene = bpy.context.scene
     for o in bpy.context.view_layer.objects:
@@ -220,7 +225,7 @@ def export_rig(obj, path):
     if path.endswith(".bvh"):
         res = bpy.ops.export_anim.bvh(filepath=path, frame_start=scene.frame_start, frame_end=scene.frame_end)
     else:
-        if not any(c.type == 'MESH' for c in obj.children):
+        if skinned and not any(c.type == 'MESH' for c in obj.children):
             mesh = bpy.data.meshes.new(obj.name + "Body")
             mesh.from_pydata([(0.05, 0, 1.0), (-0.05, 0, 1.0), (0, 0.05, 1.0), (0, 0, 1.05)], [],
                              [(0, 1, 2), (0, 1, 3), (1, 2, 3), (0, 2, 3)])
