@@ -42,8 +42,9 @@ Rest pose (:func:`rest_corrections`)
   (:data:`.take.ORIENTATIONS_KEY`): its points are used, the device follow is
   off for it.
 
-The CMU-converted BVH (naming ``'cmu'``) is the SPEC's rest pose by
-construction and is read without any correction.
+The CMU-converted BVH's rest pose is the ASF rest pose (the SPEC's): its
+corrections are exactly the identity (a T-pose facing +Z), so it is read as
+it always was; the same rig exported without its rest pose is not.
 """
 from __future__ import annotations
 
@@ -150,8 +151,6 @@ def rest_corrections(rest_heads, parents, rig: TrackedRig, wrists=None):
     (default: they are). ``(None, why)`` when the rest pose cannot be related
     to the SPEC's (module docstring)."""
     heads = np.asarray(rest_heads, dtype=np.float64)
-    if rig.naming == "cmu":
-        return np.broadcast_to(np.eye(3), (3, 3, 3)).copy(), ""
     for k, side in ((1, "left"), (2, "right")):
         if rig.rotations[k] is None:
             return None, f"its {side} hand bone has no parent (forearm) bone"
