@@ -106,15 +106,3 @@ def rig_tracked_bones(bone_names):
     if any(f is None for f in found):
         return None
     return tuple(found), rig_naming(names)
-
-
-def rig_side_bones(bone_names):
-    """A left and a right bone (hips, else shoulders) whose heads give the
-    body's left-right direction, or None."""
-    names = list(bone_names)
-    idx = {k: names[i] for k, i in index_by_key(names).items()}
-    for left, right in SIDE_ALIASES:
-        lb, rb = first_alias(idx, left), first_alias(idx, right)
-        if lb is not None and rb is not None:
-            return lb, rb
-    return None
