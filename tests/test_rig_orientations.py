@@ -213,3 +213,39 @@ def test_a_rig_without_its_rest_pose_gives_points_without_orientations(rigs, tmp
     coll = next(c for c in bpy.data.collections if c.dancing_points.kind == 'TAKE')
     assert coll.dancing_points.orientations == "none"
     assert not take_orientations_usable(take_collection.take_from_collection(bpy.context, coll).meta)
+
+
+def _with_extra_bones(naming, extra):
+    """A test rig's names and parents plus ``extra`` bones ``(name, parent name)``."""
+    bones = rig_bones(naming)
+    names = [b[0] for b in bones]
+    parents = [names.index(b[1]) if b[1] is not None else -1 for b in bones]
+    for name, parent in extra:
+        names.append(name)
+        parents.append(names.index(parent))
+    return names, parents
+
+
+def test_full_rigs_read_the_forearm_not_its_helpers():
+    # UE5's mannequin: twist bones beside the hand (skinning helpers) are not read
+    names, parents = _with_extra_bones("unreal", [("lowerarm_twist_01_l", "lowerarm_l"),
+                                                  ("lowerarm_twist_02_l", "lowerarm_l"),
+                                                  ("upperarm_twist_01_l", "upperarm_l"), ("ik_hand_root", "pelvis"),
+                                                  ("ik_hand_l", "ik_hand_root")])
+    rig = tracked_rig(names, parents)
+    assert [names[i] for i in rig.rotations] == ["head", "lowerarm_l", "lowerarm_r"]
+    assert [names[i] for i in rig.points] == ["head", "hand_l", "hand_r"]
+    # a whole generated Rigify rig: controls, ORG- and MCH- bones beside the DEF- ones
+    extra = [("root", "DEF-spine"), ("head", "DEF-spine.005"), ("hand_ik.L", "root"), ("ORG-forearm.L", "DEF-spine"),
+             ("ORG-hand.L", "ORG-forearm.L"), ("MCH-forearm_tweak.L", "ORG-forearm.L")]
+    names, parents = _with_extra_bones("rigify", extra)
+    rig = tracked_rig(names, parents)
+    assert rig.naming == "rigify"
+    assert [names[i] for i in rig.rotations] == ["head", "DEF-forearm.L.001", "DEF-forearm.R.001"]
+    # CMU-converted BVH names: the hand point is LeftFingerBase, its orientation LeftHand (ASF lwrist)
+    from dancing_points_addon.skeleton import CMU_BVH_NAMES, JOINT_NAMES, PARENTS
+    cmu = [CMU_BVH_NAMES[n] for n in JOINT_NAMES]
+    rig = tracked_rig(cmu, PARENTS)
+    assert rig.naming == "cmu"
+    assert [cmu[i] for i in rig.points] == ["Head", "LeftFingerBase", "RightFingerBase"]
+    assert [cmu[i] for i in rig.rotations] == ["Head", "LeftHand", "RightHand"]
