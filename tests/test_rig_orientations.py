@@ -249,3 +249,42 @@ def test_full_rigs_read_the_forearm_not_its_helpers():
     assert rig.naming == "cmu"
     assert [cmu[i] for i in rig.points] == ["Head", "LeftFingerBase", "RightFingerBase"]
     assert [cmu[i] for i in rig.rotations] == ["Head", "LeftHand", "RightHand"]
+
+
+def test_an_amc_of_an_a_pose_asf(tmp_path):
+    """An ASF whose arms rest 45° down: the hand orientations still carry the
+    SPEC rest pose's forearm direction (+X / −X) onto the posed forearm."""
+    import re
+
+    from support.helpers import trim_amc
+    from dancing_points_addon.formats.asf_amc import load_amc
+    from dancing_points_addon.formats.inputs import load_input
+    from dancing_points_addon.rotations import quat_to_matrix
+
+    if not SALSA.exists():
+        pytest.skip("shared data not found")
+    text = (SALSA / "60.asf").read_text()
+    arm = {"l": ("lhumerus", "lradius", "lwrist", "lhand", "lfingers", "lthumb")}
+    arm["r"] = tuple("r" + n[1:] for n in arm["l"])
+    for side, sign in (("l", -1.0), ("r", 1.0)):
+        turn = axis_rotation("Z", sign * np.pi / 4)
+        for bone in arm[side]:
+            m = re.search(rf"name {bone}\s*\n\s*direction ([^\n]+)\n", text)
+            d = turn @ np.array([float(x) for x in m.group(1).split()])
+            text = text[:m.start(1)] + " ".join(f"{x:.9g}" for x in d) + text[m.end(1):]
+    for name, asf in (("t", SALSA / "60.asf"), ("a", tmp_path / "a.asf")):
+        if name == "a":
+            asf.write_text(text)
+        trim_amc(SALSA / "60_08.amc", tmp_path / f"{name}.amc", 40)
+        take = load_input(tmp_path / f"{name}.amc", asf=asf)
+        motion = load_amc(tmp_path / f"{name}.amc", asf)
+        assert take_orientations_usable(take.meta)
+        for dev, (a, b, x) in ((1, ("lradius", "lwrist", 1.0)), (2, ("rradius", "rwrist", -1.0))):
+            fore = motion.positions[:, JOINT_INDEX[b]] - motion.positions[:, JOINT_INDEX[a]]
+            fore /= np.linalg.norm(fore, axis=-1, keepdims=True)
+            got = quat_to_matrix(take.quats[:, dev]) @ np.array([x, 0.0, 0.0])
+            assert np.abs(got - fore).max() < 1e-6, (name, dev)
+            # the ASF's own rotations (relative to its rest pose) would not: the A-pose's 45°
+            own = motion.rotations[:, JOINT_INDEX[b]] @ np.array([x, 0.0, 0.0])
+            off = np.degrees(np.arccos(np.clip(np.sum(own * fore, -1), -1.0, 1.0)))
+            assert (off.min() > 40.0) if name == "a" else (off.max() < 1e-4), (name, dev, off.min())

@@ -13,10 +13,10 @@ from ..errors import InputError
 from .files import regular_file
 from .limits import MAX_ABS_TIME_S, MAX_GAP_S, check_duration, check_height, check_rate
 from ..resample import NET_FPS, resample_plan, tracked_after_resampling
-from .rig_rest import rig_problem_line
+from .rig_rest import asf_rest_corrections, rig_problem_line
 from .take import (DEVICES, MAX_DISTANCE_M, ORIENTATIONS_PROBLEM_KEY, Take, read_take, take_from_motion,
                    take_from_tracked)
-from ..skeleton import JOINT_INDEX
+from ..skeleton import HEAD_BONE, JOINT_INDEX, WRISTS
 
 HAND_BONES = (JOINT_INDEX["lhand"], JOINT_INDEX["rhand"])  # what the grips of openxr devices are rigid on
 
@@ -153,7 +153,7 @@ def _load(path, asf=None, input_fps=None, height=None, want_hands=False, role=No
                     regular_file(os.fspath(asf), "an ASF file", missing="no such ASF file")
                 from .asf_amc import load_amc
                 motion = load_amc(path, asf, fps=input_fps)
-                take = _checked_motion_take(path, take_from_motion(motion), ext)
+                take = _checked_motion_take(path, _amc_take(motion), ext)
                 hands = motion.rotations[:, list(HAND_BONES)] if want_hands else None
             else:
                 take, hands = _take_from_bvh(path, input_fps, want_hands)
@@ -195,6 +195,21 @@ def _checked_motion_take(path, take: Take, ext=".fbx") -> Take:
         raise InputError(path, f"{DEVICES[d]} point of frame {r + 1} is out of range (more than "
                                f"{MAX_DISTANCE_M:g} m from the origin, or not a finite number)", line)
     return take
+
+
+def _amc_take(motion) -> Take:
+    """The take of an AMC motion: :func:`take_from_motion`, its orientations
+    relative to the SPEC rest pose when the ASF rests otherwise (an A-pose;
+    the CMU skeletons rest in the SPEC's T-pose and are read as they are)."""
+    take = take_from_motion(motion)
+    Q, problem = asf_rest_corrections(motion.bone_vectors)
+    if Q is not None and np.array_equal(Q, np.broadcast_to(np.eye(3), Q.shape)):
+        return take
+    rot = motion.rotations
+    r = [rot[:, HEAD_BONE], rot[:, WRISTS[0]], rot[:, WRISTS[1]]]
+    if Q is not None:
+        r = [r[k] @ Q[k] for k in range(3)]
+    return take_from_tracked(take.time, take.positions, *r, take.meta, take.source, problem)
 
 
 def _take_from_bvh(path, input_fps=None, want_hands=False):

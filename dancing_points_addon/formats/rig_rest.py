@@ -200,3 +200,14 @@ def rig_problem_line(path, problem) -> str:
     return (f"{path}: the rig's head and hand orientations cannot be read ({problem}); its points are used, "
             "without the device follow")
 
+
+
+def asf_rest_corrections(bone_vectors):
+    """:func:`rest_corrections` of an ASF skeleton's rest pose (SPEC §2 bones,
+    ``bone_vectors (31, 3)``): the identity for the CMU skeletons (their rest
+    pose is a T-pose facing +Z); an ASF resting otherwise is corrected the same
+    way as any rig."""
+    from ..skeleton import JOINT_NAMES, PARENTS, rest_starts
+
+    return rest_corrections(rest_starts(np.asarray(bone_vectors, dtype=np.float64)), PARENTS,
+                            tracked_rig(JOINT_NAMES, PARENTS))
