@@ -34,6 +34,8 @@ from . import compat
 from .bake import ROLE_LABEL
 from .props import ROLE_PROP, ROLES
 
+RIG_NAMES = ("a skull bone and hand bones: Head with LeftHand/RightHand as in Mixamo, Rokoko or the "
+             "CMU-converted BVH; hand_l (Unreal), DEF-hand.L (Rigify), J_Bip_L_Hand (VRoid) or lhand (ASF)")
 # The armatures of a baked duet by the role they dance (``bake.bake_duet``: "DP Leader", "DP Follower").
 DP_ARMATURE_ROLES = {"DP " + label: role for role, label in ROLE_LABEL.items()}
 
@@ -78,9 +80,7 @@ def _precheck(path, ext, input_fps=None):
         except Exception as exc:
             raise InputError(path, f"cannot read BVH file ({type(exc).__name__}: {exc})") from None
         if rig_tracked_bones(data.names) is None:
-            raise InputError(path, "cannot find the head and hand joints: expected the CMU-converted naming "
-                                   "(Head, LeftHand, LeftFingerBase, ...) or Mixamo (mixamorig:Head, "
-                                   "mixamorig:LeftHand, ...)")
+            raise InputError(path, "cannot find the head and hand joints: expected " + RIG_NAMES)
     elif ext == ".fbx":
         try:
             with open(path, "rb") as fh:
@@ -134,9 +134,7 @@ def choose_armature(path, arms, taken=(), role=None, armature=""):
                                    "{:s})".format(armature, listed or "none"))
         return named[0]
     if not cands:
-        raise InputError(path, "no armature with a Head bone and hand bones (expected the CMU-converted "
-                               "naming: Head, LeftHand, LeftFingerBase, ... or Mixamo: mixamorig:Head, "
-                               "mixamorig:LeftHand, ...)")
+        raise InputError(path, "no armature with a Head bone and hand bones (expected " + RIG_NAMES + ")")
     if len(cands) == 1:
         return cands[0]
     want = role or "leader"

@@ -220,8 +220,9 @@ def _up_matrix(data: BvhData, up, head_joint: int | None):
 def _naming_error(data: BvhData):
     return InputError(
         data.path,
-        "cannot find the head and hand joints: expected the CMU-converted naming (Hips, Neck1, Head, "
-        "LeftHand, LeftFingerBase, ...) or the Mixamo naming (mixamorig:Head, mixamorig:LeftHand, ...)",
+        "cannot find the head and hand joints: expected a skull joint and hand joints (Head with LeftHand/"
+        "RightHand as in Mixamo, Rokoko or the CMU-converted BVH; hand_l (Unreal), DEF-hand.L (Rigify), "
+        "J_Bip_L_Hand (VRoid) or lhand (ASF))",
         data.joint_lines[0] if data.joint_lines else None)
 
 
