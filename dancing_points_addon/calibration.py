@@ -45,7 +45,7 @@ from .errors import InputError
 from .formats.devices import (DEVICE_KINDS, REFERENCE_HEIGHT_M, DeviceOffsets, DeviceTurns, check_devices, offsets_for,
                               openxr_to_points, points_to_openxr, turns_for)
 from .formats.limits import FLOOR_RANGE_M
-from .formats.take import Take
+from .formats.take import ORIENTATIONS_PROBLEM_KEY, Take, take_orientations_usable
 from .representation import root_from_head, to_local, to_world
 from .resample import NET_FPS, resample_plan, tracked_after_resampling
 from .rotations import matrix_to_quat, quat_to_matrix
@@ -88,6 +88,7 @@ class Calibration:
     # per device: the median speed (degrees a second) at which its orientation turns (NaN: unknown)
     turn_speeds: tuple = (float("nan"),) * 3
     orientations_given: str = "measured"  # the take's ``orientations`` metadata
+    orientations_problem: str = ""  # why a full-body file's rig gave none (``formats.rig_rest``)
 
     def describe(self) -> str:
         """One line for a user: what was given and what estimated."""
@@ -103,7 +104,7 @@ class Calibration:
         if not off:
             return None
         if self.orientations_given == "none":
-            why = "the take says its orientations carry nothing (orientations=none)"
+            why = self.orientations_problem or "the take says its orientations carry nothing (orientations=none)"
         else:
             speeds = [f"{s:,.0f}" for s, f in zip(self.turn_speeds, self.followed) if not f]
             why = (f"they turn {', '.join(speeds)} degrees a second on the median row (no body turns faster than "
@@ -284,7 +285,7 @@ def calibrate(take: Take, height=None, floor_y=None, devices=None, offsets: Devi
     if offsets is None:
         offsets = offsets_for(meta, head_offset, hand_offset, path)
     turns = turns_for(meta, head_turn, hand_turn, path)
-    given_o = str(meta.get("orientations") or "measured").lower()
+    given_o = "measured" if take_orientations_usable(meta) else "none"
     speeds = orientation_speeds(take)
     followed = tuple(bool(given_o != "none" and not s > ORIENTATION_SPEED_LIMIT) for s in speeds)
     if height in ("auto", ""):
@@ -296,7 +297,8 @@ def calibrate(take: Take, height=None, floor_y=None, devices=None, offsets: Devi
         return head_heights(take, devices, offsets, h, turns, followed)
 
     def made(h, h_src, f, f_src):
-        return Calibration(devices, h, h_src, f, f_src, offsets, role, turns, followed, speeds, given_o)
+        return Calibration(devices, h, h_src, f, f_src, offsets, role, turns, followed, speeds, given_o,
+                           str(meta.get(ORIENTATIONS_PROBLEM_KEY) or ""))
 
     seen = heads(TRAIN_HEIGHT).size > 0  # the head on a 30 Hz frame
     if given_h is not None:

@@ -52,6 +52,10 @@ class DP_CollectionSettings(bpy.types.PropertyGroup):
         items=(('leader', "Leader", "The leader's points: the follower is synthesised"),
                ('follower', "Follower", "The follower's points: the leader is synthesised")),
     )
+    orientations: StringProperty(
+        name="Orientations", default="",
+        description="'none': the file's rig gave its points but not their orientations (its rest pose could "
+                    "not be related to the SPEC's); the synthesis does not follow the devices' orientations")
     devices: EnumProperty(
         name="Devices", default='joints',
         description="What the take's three poses are (SPEC §3 devices)",

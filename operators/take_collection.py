@@ -17,7 +17,7 @@ import numpy as np
 
 from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon.errors import UserError
-from ..dancing_points_addon.formats.take import Take
+from ..dancing_points_addon.formats.take import ORIENTATIONS_KEY, Take
 from ..dancing_points_addon.resample import NET_FPS
 from . import compat
 from .kinds import KIND_TAKE
@@ -230,6 +230,8 @@ def take_from_collection(context, coll):
         pos, quats = exact
     time = s.t0 + np.arange(T) / float(s.fps or NET_FPS)
     meta = {"devices": s.devices, "role": s.role}
+    if s.orientations:
+        meta[ORIENTATIONS_KEY] = s.orientations
     if s.height > 0:
         meta["height_m"] = float(s.height)
     if s.use_floor_y:

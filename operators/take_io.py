@@ -21,6 +21,8 @@ from ..dancing_points_addon.errors import InputError, error_message
 from ..dancing_points_addon.formats.files import regular_file
 from ..dancing_points_addon.formats.inputs import check_take, load_input
 from ..dancing_points_addon.formats.limits import check_height, check_rate
+from ..dancing_points_addon.formats.rig_rest import rig_problem_line
+from ..dancing_points_addon.formats.take import ORIENTATIONS_NONE, ORIENTATIONS_PROBLEM_KEY, take_orientations_usable
 from ..dancing_points_addon.resample import NET_FPS, resample_take
 from .take_collection import remove_collection, build_take_collection
 from .take_ghost import remove_ghost, build_amc_ghost, keep_ghost
@@ -158,7 +160,7 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
     def _make_take(self, context, path, ext, take, ghost):
         conv = np.array(axis_conversion(from_forward=self.axis_forward, from_up=self.axis_up).to_3x3())
         source_fps = float(take.meta.pop("source_fps", 0.0))
-        estimated = take.meta.pop("rotation_estimate", None) is not None
+        problem = take.meta.pop(ORIENTATIONS_PROBLEM_KEY, None)
         take.meta.pop("source_naming", None)
         self._source_armature = take.meta.pop("source_armature", "")  # said in the INFO line
         if not source_fps and take.n_frames > 1:
@@ -177,7 +179,8 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
             raise InputError(path, f"unknown role {role!r} (expected leader or follower)")
         settings = dict(source=path, source_type=ext[1:], height=float(take.height or 0.0),
                         input_fps=float(self.input_fps), source_fps=source_fps, devices=devices, role=role,
-                        axis_forward=self.axis_forward, axis_up=self.axis_up)
+                        axis_forward=self.axis_forward, axis_up=self.axis_up,
+                        orientations="" if take_orientations_usable(take.meta) else ORIENTATIONS_NONE)
         if take.meta.get("floor_y") not in (None, ""):
             try:
                 settings.update(use_floor_y=True, floor_y=float(take.meta["floor_y"]))
@@ -217,9 +220,8 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
             scene.frame_start = self.frame_start
             scene.frame_end = self.frame_start + span
         scene.dancing_points.take = coll
-        if estimated:
-            self.report({'WARNING'}, "{:s}: the rig's rest pose is not a T-pose facing forward; the head "
-                                     "orientation was estimated from the hips".format(os.path.basename(path)))
+        if problem:
+            self.report({'WARNING'}, rig_problem_line(os.path.basename(path), problem))
         for obj in context.view_layer.objects:
             if obj.select_get():
                 obj.select_set(False)

@@ -3,20 +3,18 @@
 (:func:`read_rig_take`, for ``bpy.ops.dancing_points.import_take``,
 :mod:`.take_io`); the imported rig is removed again.
 
-Head point = head of bone ``Head``; hands = head of ``LeftFingerBase`` /
-``RightFingerBase`` (the end of ``lwrist``) for the CMU-converted naming, else
-head of ``LeftHand`` / ``RightHand`` (the wrist; Mixamo and generic namings).
-Device rotations: the bone's world rotation relative to its rest pose
-(``Rpose · Rrestᵀ``, independent of bone roll), converted to motion space;
-the head device is that of bone ``Head`` composed with Ry(180°)
-(``take.take_from_tracked``: the device looks along −Z, the skull faces +Z),
-so a rig whose rest pose is the SPEC's (upright, facing +Z in the file's
-Y-up space: the CMU conversion, Mixamo's T-pose) gives SPEC §3 head
-quaternions exactly. When the rest pose is not that (e.g. an FBX whose rest
-pose is some frame of the dance, as Blender's FBX exporter writes an
-unskinned armature), each bone's facing is calibrated against the body
-(hips, else shoulders) over the clip instead, with a warning
-(``blender_math.rig_rotations``).
+Which bones and what their rotations mean: ``formats.rig_rest`` (the same
+as the core BVH reader's). Points: the heads of the skull bone and the hand
+bones (the wrists). Device rotations: the skull's and the forearm's end's
+(the hand bone's parent: never the hand bone, which bends at the wrist),
+each the bone's world rotation relative to its rest pose (``Rpose · Rrestᵀ``,
+independent of bone roll), converted to motion space and corrected for the
+rest pose (T- or A-pose, any facing) to SPEC §2's; the head device is that
+of the skull composed with Ry(180°) (``take.take_from_tracked``). A rig
+whose rest pose cannot be related to the SPEC's (say an armature exported
+without its rest pose, where Blender writes the pose of the export frame)
+gives its points without orientations: ``orientations=none``, the reason in
+``orientations_problem``.
 """
 
 import re
@@ -27,7 +25,8 @@ import numpy as np
 from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon.errors import InputError
 from ..dancing_points_addon.formats.files import regular_file
-from ..dancing_points_addon.formats.naming import rig_side_bones, rig_tracked_bones
+from ..dancing_points_addon.formats.naming import rig_tracked_bones
+from ..dancing_points_addon.formats.rig_rest import rest_corrections, tracked_rig
 from ..dancing_points_addon.formats.limits import check_duration, check_rate
 from ..dancing_points_addon.formats.take import take_from_tracked
 from ..dancing_points_addon.formats.units import unit_scale_for_height
@@ -35,6 +34,8 @@ from . import compat
 from .bake import ROLE_LABEL
 from .props import ROLE_PROP, ROLES
 
+RIG_NAMES = ("a skull bone and hand bones: Head with LeftHand/RightHand as in Mixamo, Rokoko or the "
+             "CMU-converted BVH; hand_l (Unreal), DEF-hand.L (Rigify), J_Bip_L_Hand (VRoid) or lhand (ASF)")
 # The armatures of a baked duet by the role they dance (``bake.bake_duet``: "DP Leader", "DP Follower").
 DP_ARMATURE_ROLES = {"DP " + label: role for role, label in ROLE_LABEL.items()}
 
@@ -79,9 +80,7 @@ def _precheck(path, ext, input_fps=None):
         except Exception as exc:
             raise InputError(path, f"cannot read BVH file ({type(exc).__name__}: {exc})") from None
         if rig_tracked_bones(data.names) is None:
-            raise InputError(path, "cannot find the head and hand joints: expected the CMU-converted naming "
-                                   "(Head, LeftHand, LeftFingerBase, ...) or Mixamo (mixamorig:Head, "
-                                   "mixamorig:LeftHand, ...)")
+            raise InputError(path, "cannot find the head and hand joints: expected " + RIG_NAMES)
     elif ext == ".fbx":
         try:
             with open(path, "rb") as fh:
@@ -135,9 +134,7 @@ def choose_armature(path, arms, taken=(), role=None, armature=""):
                                    "{:s})".format(armature, listed or "none"))
         return named[0]
     if not cands:
-        raise InputError(path, "no armature with a Head bone and hand bones (expected the CMU-converted "
-                               "naming: Head, LeftHand, LeftFingerBase, ... or Mixamo: mixamorig:Head, "
-                               "mixamorig:LeftHand, ...)")
+        raise InputError(path, "no armature with a Head bone and hand bones (expected " + RIG_NAMES + ")")
     if len(cands) == 1:
         return cands[0]
     want = role or "leader"
@@ -186,9 +183,14 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
         file_fps = scene.render.fps / scene.render.fps_base
         arms = [o for o in bpy.data.objects if o not in before["objects"] and o.type == 'ARMATURE']
         taken = {o.name for o in before["objects"]}
-        arm, (point_bones, rot_bones, naming), arm_name, arm_role = choose_armature(path, arms, taken, role,
-                                                                                   armature)
-        side_bones = rig_side_bones([b.name for b in arm.data.bones])
+        arm, _, arm_name, arm_role = choose_armature(path, arms, taken, role, armature)
+        bones = arm.data.bones
+        names = [b.name for b in bones]
+        where = {n: i for i, n in enumerate(names)}
+        parents = [where[b.parent.name] if b.parent is not None else -1 for b in bones]
+        rig = tracked_rig(names, parents)
+        point_bones = [names[i] for i in rig.points]
+        rot_bones = [names[rig.points[0] if i is None else i] for i in rig.rotations]
         action = arm.animation_data.action if arm.animation_data else None
         if action is None:
             raise InputError(path, "the file has no animation")
@@ -200,50 +202,40 @@ def read_rig_take(context, path, ext, input_fps=0.0, axis_forward='-Z', axis_up=
                 check_rate(path, file_fps, what="the file's frame rate (set Input FPS to override it)"))
         check_duration(path, (f1 - f0) / rate, what=f"the animation ({f1 - f0 + 1} frames at {rate:g} fps)")
         frames = np.arange(f0, f1 + 1)
-        # Rest pose (world, Blender space): bone frames, size, and whether it is the SPEC rest pose.
+        # Rest pose (world, Blender space): bone frames, heads (how it relates to the SPEC's), size.
         mw = np.array(arm.matrix_world)
-        bones = arm.data.bones
-
-        def rest_point(name):
-            return (mw @ np.array([*bones[name].head_local, 1.0]))[:3]
-
         rest_rot = np.stack([(mw @ np.array(bones[b].matrix_local))[:3, :3] for b in rot_bones])
-        ends = np.array([[*bones[b].head_local, 1.0] for b in bones.keys()]
-                        + [[*bones[b].tail_local, 1.0] for b in bones.keys()]) @ mw.T
-        height = rest_point(point_bones[0])[2] - ends[:, 2].min()
+        heads = np.array([[*b.head_local, 1.0] for b in bones]) @ mw.T
+        ends = np.concatenate([heads, np.array([[*b.tail_local, 1.0] for b in bones]) @ mw.T])
+        height = heads[rig.points[0], 2] - ends[:, 2].min()
         scale = unit_scale_for_height(height) if units == 'AUTO' else 1.0
-        rest_ok = side_bones is not None and bm.rest_faces_spec(
-            bm.to_motion(rest_point(side_bones[0])), bm.to_motion(rest_point(side_bones[1])),
-            bm.to_motion(rest_point(point_bones[0])))
-        if side_bones is None:
-            side_bones = (point_bones[1], point_bones[2])  # only used if the rest pose is unusable
+        Q, problem = rest_corrections(bm.to_motion(heads[:, :3]), parents, rig)
         T = len(frames)
-        pts = np.empty((T, 5, 3))
+        pts = np.empty((T, 3, 3))
         world = np.empty((T, 3, 3, 3))
         depsgraph = context.evaluated_depsgraph_get()
-        names = tuple(point_bones) + tuple(side_bones)
         for i, f in enumerate(frames):
             scene.frame_set(int(f))
             ev = arm.evaluated_get(depsgraph)
             mw_t = np.array(ev.matrix_world)
             pb = ev.pose.bones
-            for d, name in enumerate(names):
-                pts[i, d] = (mw_t @ np.array([*pb[name].head, 1.0]))[:3]
             for d in range(3):
+                pts[i, d] = (mw_t @ np.array([*pb[point_bones[d]].head, 1.0]))[:3]
                 world[i, d] = (mw_t @ np.array(pb[rot_bones[d]].matrix))[:3, :3]
         pts_m = bm.to_motion(pts * scale)
-        # Bone frames (columns = local axes in world) to motion space: C^T · W.
-        world_m = bm.C.T @ world
-        rest_m = bm.C.T @ rest_rot
-        rot = bm.rig_rotations(world_m, rest_m, pts_m[:, 3], pts_m[:, 4], rest_ok)
+        # Bone frames (columns = local axes in world) to motion space: C^T · W; relative to the
+        # rest pose: W · W_restᵀ (bone rolls cancel); to the SPEC rest pose: · Q.
+        world = world / np.linalg.norm(world, axis=-2, keepdims=True)
+        rest_rot = rest_rot / np.linalg.norm(rest_rot, axis=-2, keepdims=True)
+        rot = (bm.C.T @ world) @ np.swapaxes(bm.C.T @ rest_rot, -1, -2)[None]
+        if Q is not None:
+            rot = rot @ Q[None]
         time = (frames - frames[0]) / rate
-        meta = {"source_naming": naming, "source_armature": arm_name}
+        meta = {"source_naming": rig.naming, "source_armature": arm_name}
         if role is None and arm_role is not None:  # the file says whose dance it is (a duet FBX's armature)
             meta["role"] = arm_role
-        take = take_from_tracked(time, pts_m[:, :3], rot[:, 0], rot[:, 1], rot[:, 2], meta, path)
+        take = take_from_tracked(time, pts_m, rot[:, 0], rot[:, 1], rot[:, 2], meta, path, problem)
         take.meta["source_fps"] = rate
-        if not rest_ok:
-            take.meta["rotation_estimate"] = "body"
         if ghost is not None:
             objs = [arm] + list(arm.children_recursive)
             ghost.update(objects=objs, first_frame=int(f0), rate=float(rate), scale=float(scale))

@@ -73,6 +73,7 @@ BLENDER_FIXTURES = {
     "test_method_view.py": {"scene_duet"},
     "test_outputs_safety.py": set(),
     "test_readers_robust.py": {"blender"},
+    "test_rig_orientations.py": {"rigs"},
     "test_retarget.py": {"scene"},
     "test_retarget_rigs.py": {"rigs"},
     "test_runtime.py": set(),

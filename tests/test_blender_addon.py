@@ -240,24 +240,20 @@ def test_bvh_and_fbx_give_the_csv_take(files):
 
 
 def test_fbx_with_a_posed_rest_pose(files):
-    """An FBX whose rest pose is a frame of the dance: positions stay exact, the
-    device rotations are calibrated against the hips (an estimate)."""
+    """An FBX whose rest pose is a frame of the dance: positions stay exact; the
+    device rotations cannot be related to the SPEC rest pose and are not
+    guessed: the take says ``orientations=none`` (the device follow is off)."""
     fbx = files["dir"] / "salsa60_10_posed_rest.fbx"
     _export_fbx(files, fbx, rest_frame=False)
     bsu.fresh_scene()
     ref = bsu.take_device_keys(_import(files["csv"]))
-    keys = bsu.take_device_keys(_import(fbx))
-    errs = _compare_takes(ref, keys, "fbx (posed rest)")
-    for dev, (err, ang) in errs.items():
-        assert err < 1 * MM
-    # The head's heading (what the networks use from it) stays within a few degrees.
-    from dancing_points_addon.representation import heading_vector
-    from dancing_points_addon.rotations import quat_to_matrix
-    h = [heading_vector(quat_to_matrix(bm.quat_to_motion(k["head"][2]))) for k in (ref, keys)]
-    diff = np.degrees(np.abs(np.arctan2(h[0][:, 0] * h[1][:, 1] - h[0][:, 1] * h[1][:, 0],
-                                        np.sum(h[0] * h[1], -1))))
-    print(f"\nfbx (posed rest): head heading error mean {diff.mean():.2f} deg, max {diff.max():.2f} deg")
-    assert diff.max() < 10.0
+    coll = _import(fbx)
+    keys = bsu.take_device_keys(coll)
+    for dev, (f, loc, quat, tr) in keys.items():
+        assert np.linalg.norm(loc - ref[dev][1], axis=-1).max() < 1 * MM, dev
+    assert coll.dancing_points.orientations == "none"
+    take = import_from_extension("operators.take_collection").take_from_collection(bpy.context, coll)
+    assert take.meta.get("orientations") == "none"
 
 
 # --------------------------------------------------------------------------- errors

@@ -302,11 +302,16 @@ def test_mixamo_naming_tracked_points(prefix, tmp_path):
     tp = tracked_points(data)
     assert tp.naming == "mixamo" and tp.scale == 0.01 and tp.up == "Y" and tp.fps == 30.0
     assert tp.joints == tuple(prefix + n for n in ("Head", "LeftHand", "RightHand"))
+    # the hand orientation is the forearm's (the hand bone bends at the wrist); a T-pose facing +Z
+    # is the SPEC's rest pose, so the rotations are the file's as they are
+    assert tp.rotation_joints == tuple(prefix + n for n in ("Head", "LeftForeArm", "RightForeArm"))
+    assert tp.problem == ""
     idx = [data.names.index(n) for n in tp.joints]
+    ridx = [data.names.index(n) for n in tp.rotation_joints]
     for t, row in enumerate(frames):
         P, G, _ = ref_fk(joints, ends, row, scale=0.01)
         assert np.abs(tp.positions[t] - P[idx]).max() < 1e-12
-        assert np.abs(tp.rotations[t] - G[idx]).max() < 1e-12
+        assert np.abs(tp.rotations[t] - G[ridx]).max() < 1e-12
     assert np.abs(head_bone_rotation(data) - tp.rotations[:, 0]).max() < 1e-12
     with pytest.raises(InputError) as e:
         bvh_to_motion(data)  # not the CMU skeleton
@@ -355,6 +360,8 @@ def test_generic_and_unknown_naming(tmp_path):
     tp = tracked_points(data)
     assert tp.naming == "generic" and tp.joints == ("head", "lHand", "rHand") and tp.scale == 0.01
     assert np.allclose(tp.positions[0], [[0, 0.6, 0], [0.7, 0.4, 0], [-0.7, 0.4, 0]])
+    # hands hung on the hips: no forearm whose orientation could be read, so none is guessed
+    assert "arm is not straight" in tp.problem and np.all(tp.rotations == np.eye(3))
     joints[2] = ("Bone.002", 0, (70, 40, 0), chans)
     data = parse_bvh(write(tmp_path, make_bvh(joints, ends, frames), "u.bvh"))
     assert detect_naming(data) is None

@@ -24,27 +24,28 @@ Conventions of this module
   take ``up='auto'``: if, in the rest pose, the head lies above the hips along
   +Z rather than +Y, the file is taken as Z up and converted with
   ``(x, y, z) -> (x, z, -y)`` (the inverse of the SPEC's Y-up -> Z-up map).
-- Rest pose: the global rotations are relative to the file's rest pose. For the
-  SPEC (§2) they are meaningful when that rest pose is the SPEC's: standing,
-  facing +Z, left = +X, arms out sideways (the CMU conversion's rest pose is
-  exactly the ASF rest pose; Mixamo's T-pose also faces +Z with Y up).
+- Rest pose: :func:`fk`'s global rotations are relative to the file's rest
+  pose. :func:`tracked_points` gives SPEC §2 rotations whatever the rest pose
+  (T- or A-pose, any facing): measured from the rest pose's bone directions
+  (:mod:`.rig_rest`); the CMU conversion's rest pose is exactly the ASF rest
+  pose and is read as is.
 
 Namings recognised (joint names may carry a ``namespace:`` prefix, matching is
-case-insensitive and ignores ``_ - . space``):
+case-insensitive and ignores ``_ - . space``; :mod:`.naming`):
 
 - ``'cmu'``: the widely used CMU-converted naming (``skeleton.CMU_BVH_NAMES``:
   Hips, LHipJoint, LeftUpLeg, ..., Neck1, Head, LeftShoulder, LeftArm,
   LeftForeArm, LeftHand, LeftFingerBase, LeftHandIndex1, LThumb, ...). All 31
   must be present. Only this naming can become a full :class:`Motion`.
-- ``'mixamo'``: Mixamo / HumanIK naming (``mixamorig:Hips``, ``Spine``,
-  ``Head``, ``LeftArm``, ``LeftForeArm``, ``LeftHand``, ...).
-- ``'generic'``: any rig with a ``Head`` joint and hand joints called e.g.
-  ``LeftHand``/``lHand``/``hand_l``/``LeftWrist``.
+- ``'mixamo'`` (also Rokoko), ``'unreal'``, ``'rigify'``, ``'vrm'``, ``'asf'``
+  and ``'generic'``: any rig with a skull joint and hand joints
+  (:data:`.naming.TRACKED_ALIASES`).
 
-Tracked points (SPEC §2): head = BVH joint ``Head`` (for the CMU naming the
-start of ``head`` = end of ``upperneck``); hands = end of ``lwrist`` /
-``rwrist`` = joint ``LeftFingerBase`` / ``RightFingerBase`` for the CMU naming,
-and joint ``LeftHand`` / ``RightHand`` (the wrist) for the other namings.
+Tracked points (SPEC §2): head = the skull joint (``Head``: for the CMU naming
+the start of ``head`` = end of ``upperneck``); hands = the start of the hand
+joint (the wrist: ``LeftFingerBase`` for the CMU naming, ASF ``lhand``, else
+``LeftHand``, ``hand_l``, ...). Orientations: the skull joint and the hand
+joint's parent, the forearm's end (:mod:`.rig_rest`).
 """
 from __future__ import annotations
 
@@ -58,7 +59,8 @@ from ..rotations import euler_to_matrix, matrix_to_euler
 from .bvh_parse import BvhData, parse_bvh
 from .files import atomic_output
 from .units import UNIT_SCALES, unit_scale_for_height
-from .naming import MIXAMO_CORE, TRACKED_ALIASES, bone_key, first_alias, index_by_key
+from .naming import bone_key, index_by_key
+from .rig_rest import rest_corrections, tracked_rig
 from ..skeleton import CMU_BVH_NAMES, JOINT_NAMES, PARENTS, Motion
 
 # Y up -> motion space for a Z-up file: (x, y, z) -> (x, z, -y).
@@ -78,12 +80,14 @@ class TrackedPoints(NamedTuple):
     """Head, left hand, right hand (this order) over the file's frames."""
 
     positions: np.ndarray  # (T, 3, 3) motion space, metres
-    rotations: np.ndarray  # (T, 3, 3, 3) global rotations relative to the rest pose
+    rotations: np.ndarray  # (T, 3, 3, 3) SPEC §2 global rotations (identity when not read)
     fps: float
-    naming: str  # 'cmu' | 'mixamo' | 'generic'
+    naming: str  # 'cmu' | 'asf' | 'mixamo' | 'unreal' | 'rigify' | 'vrm' | 'generic'
     joints: tuple  # BVH joint names whose positions were used
     scale: float  # file units -> metres used
     up: str  # 'Y' | 'Z': the file's up axis as used
+    rotation_joints: tuple = ()  # BVH joint names whose rotations were used (skull, forearm ends)
+    problem: str = ""  # why the orientations could not be read ('' when they were)
 
 
 # --------------------------------------------------------------------------- parsing
@@ -187,26 +191,13 @@ def unit_scale(data: BvhData, units="auto") -> float:
 
 
 def detect_naming(data: BvhData):
-    """``'cmu'``, ``'mixamo'``, ``'generic'`` (head and hands found) or ``None``."""
+    """``'cmu'`` (all 31 CMU-converted names), another naming of
+    :func:`.naming.rig_naming` (head and hands found) or ``None``."""
     idx = index_by_key(data.names)
     if all(bone_key(v) in idx for v in CMU_BVH_NAMES.values()):
         return "cmu"
-    if all(k in idx for k in MIXAMO_CORE):
-        return "mixamo"
-    if all(any(a in idx for a in al) for al in TRACKED_ALIASES.values()):
-        return "generic"
-    return None
-
-
-def _tracked_joints(data: BvhData, naming: str):
-    """Indices (position joints, rotation joints) for head, lhand, rhand."""
-    idx = index_by_key(data.names)
-    if naming == "cmu":
-        pos = [idx[bone_key(CMU_BVH_NAMES[n])] for n in ("head", "lhand", "rhand")]
-        rot = [idx[bone_key(CMU_BVH_NAMES[n])] for n in ("head", "lwrist", "rwrist")]
-        return pos, rot
-    found = [first_alias(idx, TRACKED_ALIASES[k]) for k in ("head", "lhand", "rhand")]
-    return found, found
+    rig = tracked_rig(data.names, data.parents)
+    return None if rig is None else rig.naming
 
 
 def _up_matrix(data: BvhData, up, head_joint: int | None):
@@ -229,8 +220,9 @@ def _up_matrix(data: BvhData, up, head_joint: int | None):
 def _naming_error(data: BvhData):
     return InputError(
         data.path,
-        "cannot find the head and hand joints: expected the CMU-converted naming (Hips, Neck1, Head, "
-        "LeftHand, LeftFingerBase, ...) or the Mixamo naming (mixamorig:Head, mixamorig:LeftHand, ...)",
+        "cannot find the head and hand joints: expected a skull joint and hand joints (Head with LeftHand/"
+        "RightHand as in Mixamo, Rokoko or the CMU-converted BVH; hand_l (Unreal), DEF-hand.L (Rigify), "
+        "J_Bip_L_Hand (VRoid) or lhand (ASF))",
         data.joint_lines[0] if data.joint_lines else None)
 
 
@@ -238,33 +230,36 @@ def tracked_points(data: BvhData, scale: float | None = None, units="auto", up="
     """The SPEC §2 tracked points (head, left hand, right hand) for any
     recognised naming, in motion space (metres, Y up).
 
-    Rotations are global rotations relative to the file's rest pose: the
-    ``Head`` joint (the skull) and the ``LeftHand``/``RightHand`` joints (for
-    the CMU naming, the ``lwrist``/``rwrist`` bones that end at the points). The
-    SPEC head device orientation is ``rotations[:, 0] @ Ry(180°)`` when the rest
-    pose faces +Z (composed by the take builder, not here).
+    Rotations are SPEC §2 global rotations of the skull and the forearm's ends
+    (the hand joints' parents; :mod:`.rig_rest`), corrected for the file's rest
+    pose; when the rest pose cannot be related to the SPEC's, identities and
+    ``problem`` says why. The SPEC head device orientation is
+    ``rotations[:, 0] @ Ry(180°)`` (composed by the take builder, not here).
     """
-    naming = detect_naming(data)
-    if naming is None:
+    rig = tracked_rig(data.names, data.parents)
+    if rig is None:
         raise _naming_error(data)
-    pj, rj = _tracked_joints(data, naming)
+    pj = list(rig.points)
     s = unit_scale(data, units if scale is None else scale)
     m, up_used = _up_matrix(data, up, pj[0])
+    Q, problem = rest_corrections(rest_positions(data)[0] @ m.T, data.parents, rig)
+    rj = [pj[0] if r is None else r for r in rig.rotations]
     res = _fk_joints(data, s, pj + rj)
     pos = np.stack([res[j][0] for j in pj], axis=1) @ m.T
-    rot = m @ np.stack([res[j][1] for j in rj], axis=1) @ m.T
-    return TrackedPoints(pos, rot, data.fps, naming, tuple(data.names[i] for i in pj), s, up_used)
+    T = pos.shape[0]
+    if Q is None:
+        rot = np.broadcast_to(np.eye(3), (T, 3, 3, 3)).copy()
+    else:
+        rot = m @ np.stack([res[j][1] for j in rj], axis=1) @ m.T @ Q[None]
+    return TrackedPoints(pos, rot, data.fps, "cmu" if detect_naming(data) == "cmu" else rig.naming,
+                         tuple(data.names[i] for i in pj), s, up_used,
+                         tuple(data.names[i] for i in rj), problem)
 
 
 def head_bone_rotation(data: BvhData, up="auto") -> np.ndarray:
-    """``(T, 3, 3)`` global rotation of the ``Head`` joint (the skull), motion
-    space, relative to the rest pose. The SPEC head device is this ``@ Ry(180°)``."""
-    naming = detect_naming(data)
-    if naming is None:
-        raise _naming_error(data)
-    pj, _ = _tracked_joints(data, naming)
-    m, _ = _up_matrix(data, up, pj[0])
-    return m @ _fk_joints(data, 1.0, [pj[0]])[pj[0]][1] @ m.T
+    """``(T, 3, 3)`` SPEC §2 global rotation of the skull joint, motion space (see
+    :func:`tracked_points`). The SPEC head device is this ``@ Ry(180°)``."""
+    return tracked_points(data, scale=1.0, up=up).rotations[:, 0]
 
 
 def bvh_to_motion(data: BvhData, scale: float | None = None, units="auto", up="auto") -> Motion:

@@ -5,6 +5,7 @@ the batch and the Blender import all apply them."""
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 
@@ -12,8 +13,10 @@ from ..errors import InputError
 from .files import regular_file
 from .limits import MAX_ABS_TIME_S, MAX_GAP_S, check_duration, check_height, check_rate
 from ..resample import NET_FPS, resample_plan, tracked_after_resampling
-from .take import DEVICES, MAX_DISTANCE_M, Take, read_take, take_from_motion, take_from_tracked
-from ..skeleton import JOINT_INDEX
+from .rig_rest import asf_rest_corrections, rig_problem_line
+from .take import (DEVICES, MAX_DISTANCE_M, ORIENTATIONS_PROBLEM_KEY, Take, read_take, take_from_motion,
+                   take_from_tracked)
+from ..skeleton import HEAD_BONE, JOINT_INDEX, WRISTS
 
 HAND_BONES = (JOINT_INDEX["lhand"], JOINT_INDEX["rhand"])  # what the grips of openxr devices are rigid on
 
@@ -150,7 +153,7 @@ def _load(path, asf=None, input_fps=None, height=None, want_hands=False, role=No
                     regular_file(os.fspath(asf), "an ASF file", missing="no such ASF file")
                 from .asf_amc import load_amc
                 motion = load_amc(path, asf, fps=input_fps)
-                take = _checked_motion_take(path, take_from_motion(motion), ext)
+                take = _checked_motion_take(path, _amc_take(motion), ext)
                 hands = motion.rotations[:, list(HAND_BONES)] if want_hands else None
             else:
                 take, hands = _take_from_bvh(path, input_fps, want_hands)
@@ -164,6 +167,9 @@ def _load(path, asf=None, input_fps=None, height=None, want_hands=False, role=No
                                f"({type(exc).__name__}: {exc})") from None
     if height is not None:
         take.meta["height_m"] = height
+    problem = take.meta.pop(ORIENTATIONS_PROBLEM_KEY, None)
+    if problem:  # a full-body rig whose orientations cannot be read: said once, where it is read
+        print("warning: " + rig_problem_line(path, problem), file=sys.stderr)
     take.source = path
     return check_take(take, path), hands
 
@@ -191,6 +197,21 @@ def _checked_motion_take(path, take: Take, ext=".fbx") -> Take:
     return take
 
 
+def _amc_take(motion) -> Take:
+    """The take of an AMC motion: :func:`take_from_motion`, its orientations
+    relative to the SPEC rest pose when the ASF rests otherwise (an A-pose;
+    the CMU skeletons rest in the SPEC's T-pose and are read as they are)."""
+    take = take_from_motion(motion)
+    Q, problem = asf_rest_corrections(motion.bone_vectors)
+    if Q is not None and np.array_equal(Q, np.broadcast_to(np.eye(3), Q.shape)):
+        return take
+    rot = motion.rotations
+    r = [rot[:, HEAD_BONE], rot[:, WRISTS[0]], rot[:, WRISTS[1]]]
+    if Q is not None:
+        r = [r[k] @ Q[k] for k in range(3)]
+    return take_from_tracked(take.time, take.positions, *r, take.meta, take.source, problem)
+
+
 def _take_from_bvh(path, input_fps=None, want_hands=False):
     """The take of a BVH file, and (``want_hands``, CMU naming) its hand bones' rotations."""
     from . import bvh
@@ -207,4 +228,4 @@ def _take_from_bvh(path, input_fps=None, want_hands=False):
     # tp.fps is 1 / Frame Time, snapped to a whole rate when the file rounded it.
     time = np.arange(positions.shape[0]) / float(tp.fps)
     return take_from_tracked(time, positions, rotations[:, 0], rotations[:, 1], rotations[:, 2],
-                             {}, path), None
+                             {}, path, tp.problem), None

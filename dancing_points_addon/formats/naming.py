@@ -9,20 +9,43 @@ from __future__ import annotations
 import re
 
 # Normalised names (see bone_key) that identify the points, in order of preference.
-HEAD_ALIASES = ("head",)
+# The head point and orientation: the skull bone (Mixamo/Rokoko/Unreal/VRM/CMU ``Head``,
+# VRoid ``J_Bip_C_Head``, Rigify's ``DEF-spine.006`` / ``ORG-spine.006``).
+HEAD_ALIASES = ("head", "jbipchead", "defspine006", "orgspine006")
+# The hand point is the head of the hand bone (the wrist). The first ones are the CMU-converted
+# BVH's LeftFingerBase (its ``LeftHand`` is ASF ``lwrist``, the forearm's end) and ASF ``lhand``
+# (its parent ``lwrist`` ends at the wrist); then Mixamo/Rokoko/generic ``LeftHand``, Unreal
+# ``hand_l``, Rigify ``DEF-hand.L`` / ``ORG-hand.L``, VRoid ``J_Bip_L_Hand``, and joint-named rigs
+# (SMPL ``L_Wrist``: the bone that starts at the wrist).
 HAND_ALIASES = {
-    "lhand": ("lefthand", "lhand", "handl", "handleft", "leftwrist", "lwrist", "wristl"),
-    "rhand": ("righthand", "rhand", "handr", "handright", "rightwrist", "rwrist", "wristr"),
+    "lhand": ("leftfingerbase", "lhand", "lefthand", "handl", "handleft", "defhandl", "orghandl",
+              "jbiplhand", "leftwrist", "lwrist", "wristl"),
+    "rhand": ("rightfingerbase", "rhand", "righthand", "handr", "handright", "defhandr", "orghandr",
+              "jbiprhand", "rightwrist", "rwrist", "wristr"),
 }
 TRACKED_ALIASES = {"head": HEAD_ALIASES, **HAND_ALIASES}
 MIXAMO_CORE = ("hips", "spine", "head", "leftarm", "rightarm", "leftforearm", "rightforearm",
                "lefthand", "righthand")
 # Left and right bones whose heads give the body's left-right direction: hips, else shoulders.
 SIDE_ALIASES = (
-    (("leftupleg", "lefthip", "lthigh", "thighl", "leftthigh", "upperlegl", "lupleg", "lhip", "hipl"),
-     ("rightupleg", "righthip", "rthigh", "thighr", "rightthigh", "upperlegr", "rupleg", "rhip", "hipr")),
-    (("leftarm", "leftupperarm", "upperarml", "lupperarm", "larm", "leftshoulder", "lshoulder"),
-     ("rightarm", "rightupperarm", "upperarmr", "rupperarm", "rarm", "rightshoulder", "rshoulder")),
+    (("leftupleg", "lefthip", "lthigh", "thighl", "leftthigh", "upperlegl", "lupleg", "lhip", "hipl",
+      "lfemur", "defthighl", "orgthighl", "jbiplupperleg", "leftupperleg"),
+     ("rightupleg", "righthip", "rthigh", "thighr", "rightthigh", "upperlegr", "rupleg", "rhip", "hipr",
+      "rfemur", "defthighr", "orgthighr", "jbiprupperleg", "rightupperleg")),
+    (("leftarm", "leftupperarm", "upperarml", "lupperarm", "larm", "lhumerus", "defupperarml",
+      "orgupperarml", "jbiplupperarm", "leftshoulder", "lshoulder"),
+     ("rightarm", "rightupperarm", "upperarmr", "rupperarm", "rarm", "rhumerus", "defupperarmr",
+      "orgupperarmr", "jbiprupperarm", "rightshoulder", "rshoulder")),
+)
+# Namings told apart (``rig_naming``), by keys only their rigs have.
+NAMING_KEYS = (
+    ("asf", ("lhumerus", "lradius", "lwrist", "lhand")),
+    ("unreal", ("upperarml", "lowerarml", "handl")),
+    ("rigify", ("defforearml", "defhandl")),
+    ("rigify", ("orgforearml", "orghandl")),
+    ("vrm", ("jbipllowerarm", "jbiplhand")),
+    ("vrm", ("leftlowerarm", "lefthand")),
+    ("mixamo", MIXAMO_CORE),
 )
 
 
@@ -58,35 +81,28 @@ def first_alias(idx: dict, aliases):
     return next((idx[a] for a in aliases if a in idx), None)
 
 
+def rig_naming(bone_names) -> str:
+    """The naming a rig's bones follow: ``'cmu'`` (the CMU-converted BVH), ``'asf'``,
+    ``'unreal'``, ``'rigify'``, ``'vrm'``, ``'mixamo'`` (also Rokoko's, which is the
+    same) or ``'generic'``; said in the take's ``source_naming``."""
+    names = list(bone_names)
+    idx = index_by_key(names)
+    if "leftfingerbase" in idx and "rightfingerbase" in idx and "lefthand" in idx:
+        return "cmu"
+    for naming, keys in NAMING_KEYS:
+        if all(k in idx for k in keys):
+            return naming
+    return "generic"
+
+
 def rig_tracked_bones(bone_names):
-    """``(point bones, rotation bones, naming)`` for head, lhand, rhand of a
-    rig's bone names; the point is the head of the point bone. None when the rig
-    is not recognised."""
+    """``(point bones, naming)``: the bones whose heads are the head, left hand
+    and right hand points (:data:`TRACKED_ALIASES`), or None when the rig has
+    no head bone or no hand bone. Which bones give the orientations is
+    :func:`.rig_rest.tracked_rig`'s (it needs the hierarchy)."""
     names = list(bone_names)
     idx = {k: names[i] for k, i in index_by_key(names).items()}
-    if "head" not in idx:
+    found = [first_alias(idx, TRACKED_ALIASES[k]) for k in ("head", "lhand", "rhand")]
+    if any(f is None for f in found):
         return None
-    if all(k in idx for k in ("leftfingerbase", "rightfingerbase", "lefthand", "righthand")):
-        return ((idx["head"], idx["leftfingerbase"], idx["rightfingerbase"]),
-                (idx["head"], idx["lefthand"], idx["righthand"]), "cmu")
-    hands = []
-    for dev in ("lhand", "rhand"):
-        found = first_alias(idx, HAND_ALIASES[dev])
-        if found is None:
-            return None
-        hands.append(found)
-    bones = (idx["head"], hands[0], hands[1])
-    naming = "mixamo" if any(n.lower().startswith("mixamorig") for n in names) else "generic"
-    return bones, bones, naming
-
-
-def rig_side_bones(bone_names):
-    """A left and a right bone (hips, else shoulders) whose heads give the
-    body's left-right direction, or None."""
-    names = list(bone_names)
-    idx = {k: names[i] for k, i in index_by_key(names).items()}
-    for left, right in SIDE_ALIASES:
-        lb, rb = first_alias(idx, left), first_alias(idx, right)
-        if lb is not None and rb is not None:
-            return lb, rb
-    return None
+    return tuple(found), rig_naming(names)

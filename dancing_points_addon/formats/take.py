@@ -38,15 +38,29 @@ DEVICE_FIELDS = ("px", "py", "pz", "qw", "qx", "qy", "qz")
 COLUMNS = ("time",) + tuple(f"{d}_{f}" for d in DEVICES for f in DEVICE_FIELDS)
 MAX_DISTANCE_M = 1000.0  # SPEC §3: positions farther than 1 km are rejected
 QUAT_NORM_RANGE = (0.5, 2.0)  # SPEC §3: other norms are rejected, these normalised
-# Metadata ``orientations``: ``measured`` (default: the devices' orientations mean
-# what SPEC §3 says) or ``none`` (they carry nothing: a rig whose bones could not be
-# read so; only the points are used, the head and hands do not follow them).
-ORIENTATION_VALUES = ("measured", "none")
-
 # The head device looks along its local -Z with +Y up (OpenXR); the CMU skull
 # (ASF bone ``head``) faces +Z at rest. Device-to-world = R_head · Ry(180°), so a
 # wearer facing +Z has device quaternion (0, 0, 1, 0).
 HEAD_DEVICE_OFFSET = axis_rotation("Y", np.pi)
+
+
+# Metadata ``orientations``: ``measured`` (default: the devices' orientations mean
+# what SPEC §3 says) or ``none``: they carry nothing, as for a take read from a
+# full-body file whose rig's orientations cannot be read (``formats.rig_rest``; its
+# quaternions are then placeholders, head facing +Z, hands at rest). Its points are
+# used; the head and hands do not follow its orientations.
+ORIENTATIONS_KEY = "orientations"
+ORIENTATIONS_NONE = "none"
+ORIENTATION_VALUES = ("measured", ORIENTATIONS_NONE)
+# Why, said once by the reader that loads the take (not written to a take file).
+ORIENTATIONS_PROBLEM_KEY = "orientations_problem"
+
+
+def take_orientations_usable(meta) -> bool:
+    """Whether a take's device orientations mean what SPEC §3 says (False for
+    ``orientations=none``: a full-body file whose rig's orientations could not
+    be read; the synthesis then does not follow the devices' orientations)."""
+    return str((meta or {}).get(ORIENTATIONS_KEY, "")).strip().lower() != ORIENTATIONS_NONE
 
 
 @dataclass
@@ -384,11 +398,11 @@ def _parse_meta(path, lineno, text, meta):
     elif key in META_TURN_KEYS:
         parse_turn(value, key, path, lineno)
         meta[key] = value
-    elif key == "orientations" and value.lower() not in ORIENTATION_VALUES:
+    elif key == ORIENTATIONS_KEY and value.lower() not in ORIENTATION_VALUES:
         raise InputError(path, f"unknown orientations value {value!r} (expected {' or '.join(ORIENTATION_VALUES)})",
                          lineno)
     else:
-        meta[key] = value.lower() if key in ("role", "devices", "orientations") else value
+        meta[key] = value.lower() if key in ("role", "devices", ORIENTATIONS_KEY) else value
 
 
 def _parse_header(path, lineno, line: bytes):
@@ -522,13 +536,24 @@ def head_device_quat(head_rotations: np.ndarray) -> np.ndarray:
     return matrix_to_quat(np.asarray(head_rotations) @ HEAD_DEVICE_OFFSET)
 
 
-def take_from_tracked(time, positions, head_rot, lhand_rot, rhand_rot, meta=None, source="") -> Take:
+def take_from_tracked(time, positions, head_rot, lhand_rot, rhand_rot, meta=None, source="",
+                      problem="") -> Take:
     """A take from tracked-point positions ``(T, 3, 3)`` and global rotations of the
-    skull and the two wrists ``(T, 3, 3)`` each (SPEC §2 rest-pose convention)."""
+    skull and the two wrists ``(T, 3, 3)`` each (SPEC §2 rest-pose convention).
+
+    ``problem`` (why a rig's orientations cannot be read, ``formats.rig_rest``):
+    the rotations are replaced by the rest pose's and the take says
+    ``orientations=none`` (:func:`take_orientations_usable`), the reason in
+    :data:`ORIENTATIONS_PROBLEM_KEY`."""
+    meta = dict(meta or {})
+    if problem:
+        head_rot = lhand_rot = rhand_rot = np.broadcast_to(np.eye(3), np.shape(positions)[:1] + (3, 3))
+        meta[ORIENTATIONS_KEY] = ORIENTATIONS_NONE
+        meta[ORIENTATIONS_PROBLEM_KEY] = str(problem)
     quats = np.stack([head_device_quat(head_rot), matrix_to_quat(lhand_rot),
                       matrix_to_quat(rhand_rot)], axis=1)
     return Take(np.asarray(time, dtype=np.float64), np.array(positions, dtype=np.float64),
-                quats, dict(meta or {}), str(source))
+                quats, meta, str(source))
 
 
 def take_from_motion(motion: Motion) -> Take:
