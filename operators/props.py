@@ -10,7 +10,8 @@ being disabled (as plain custom properties).
 import math
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, PointerProperty,
+                       StringProperty)
 
 from ..dancing_points_addon.errors import InputError
 from ..dancing_points_addon.formats.limits import FLOOR_RANGE_M, HEIGHT_RANGE_M, check_height
@@ -56,6 +57,19 @@ class DP_CollectionSettings(bpy.types.PropertyGroup):
         name="Orientations", default="",
         description="'none': the file's rig gave its points but not their orientations (its rest pose could "
                     "not be related to the SPEC's); the synthesis does not follow the devices' orientations")
+    head_turn: FloatVectorProperty(
+        name="Head Turn", size=4, subtype='QUATERNION', default=(1.0, 0.0, 0.0, 0.0),
+        description="A headset whose pose is turned from SPEC §3's (worn tilted, another sender's axes): the "
+                    "constant rotation in its own axes, reported = true · turn (identity: none)")
+    lhand_turn: FloatVectorProperty(
+        name="Left Hand Turn", size=4, subtype='QUATERNION', default=(1.0, 0.0, 0.0, 0.0),
+        description="A left controller in another convention (a raw controller pose, a wrist tracker): the "
+                    "constant rotation in its own axes, reported = true · turn (identity: none)")
+    rhand_turn: FloatVectorProperty(
+        name="Right Hand Turn", size=4, subtype='QUATERNION', default=(1.0, 0.0, 0.0, 0.0),
+        description="The right controller's turn, as the left's")
+    orientations_used: StringProperty(
+        name="Orientations Used", description="Which device orientations the last synthesis followed")
     devices: EnumProperty(
         name="Devices", default='joints',
         description="What the take's three poses are (SPEC §3 devices)",

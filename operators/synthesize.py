@@ -118,6 +118,7 @@ class DANCING_POINTS_OT_synthesize(bpy.types.Operator):
             s = coll.dancing_points
             s.height_used, s.height_source = c.height, c.height_source
             s.floor_used, s.floor_source = c.floor_y, c.floor_source
+            s.orientations_used = c.notice() or ""
         self.report({'INFO'}, "Baked '{:s}': {:d} frames (synthesis {:.1f} s, bake {:.1f} s); {:s}".format(
             duet_coll.name, duet.n_frames, t_synth, t_bake, c.describe() if c is not None else ""))
         if c is not None and c.notice():

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon.errors import UserError
+from ..dancing_points_addon.formats.devices import META_TURN_KEYS
 from ..dancing_points_addon.formats.take import ORIENTATIONS_KEY, Take
 from ..dancing_points_addon.resample import NET_FPS
 from . import compat
@@ -232,6 +233,10 @@ def take_from_collection(context, coll):
     meta = {"devices": s.devices, "role": s.role}
     if s.orientations:
         meta[ORIENTATIONS_KEY] = s.orientations
+    for key in META_TURN_KEYS:
+        q = tuple(float(v) for v in getattr(s, key))
+        if max(abs(q[0] - 1.0), *map(abs, q[1:])) > 1e-9:  # not the identity
+            meta[key] = ",".join(repr(v) for v in q)
     if s.height > 0:
         meta["height_m"] = float(s.height)
     if s.use_floor_y:

@@ -18,6 +18,7 @@ from bpy_extras.io_utils import ImportHelper, axis_conversion, orientation_helpe
 
 from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon.errors import InputError, error_message
+from ..dancing_points_addon.formats.devices import META_TURN_KEYS, parse_turn
 from ..dancing_points_addon.formats.files import regular_file
 from ..dancing_points_addon.formats.inputs import check_take, load_input
 from ..dancing_points_addon.formats.limits import check_height, check_rate
@@ -181,6 +182,9 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
                         input_fps=float(self.input_fps), source_fps=source_fps, devices=devices, role=role,
                         axis_forward=self.axis_forward, axis_up=self.axis_up,
                         orientations="" if take_orientations_usable(take.meta) else ORIENTATIONS_NONE)
+        for key in META_TURN_KEYS:
+            if take.meta.get(key) not in (None, ""):
+                settings[key] = parse_turn(take.meta[key], key, path)
         if take.meta.get("floor_y") not in (None, ""):
             try:
                 settings.update(use_floor_y=True, floor_y=float(take.meta["floor_y"]))

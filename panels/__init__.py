@@ -74,6 +74,31 @@ class VIEW3D_PT_dancing_points_take(SubPanel, bpy.types.Panel):
             col = layout.column(align=True)
             col.label(text="Height {:.2f} m ({:s})".format(s.height_used, s.height_source), icon='INFO')
             col.label(text="Floor at {:+.3f} m ({:s})".format(s.floor_used, s.floor_source))
+            if s.orientations_used:
+                col.label(text=s.orientations_used, icon='ERROR')
+
+
+class VIEW3D_PT_dancing_points_turns(bpy.types.Panel):
+    """The active take's device turns: devices that report another convention than SPEC §3's."""
+
+    bl_idname = "VIEW3D_PT_dancing_points_turns"
+    bl_label = "Device Turns"
+    bl_space_type = 'VIEW_3D'
+    bl_region_type = 'UI'
+    bl_category = "Dancing Points"
+    bl_parent_id = "VIEW3D_PT_dancing_points_take"
+    bl_options = {'DEFAULT_CLOSED'}
+
+    @classmethod
+    def poll(cls, context):
+        return _active_take(context) is not None
+
+    def draw(self, context):
+        layout = self.layout
+        s = _active_take(context).dancing_points
+        layout.label(text="reported = true · turn, in the device's axes")
+        for key in ("head_turn", "lhand_turn", "rhand_turn"):
+            layout.prop(s, key)
 
 
 class VIEW3D_PT_dancing_points_synthesis(SubPanel, bpy.types.Panel):
@@ -124,7 +149,7 @@ class VIEW3D_PT_dancing_points_preview(SubPanel, bpy.types.Panel):
         layout.operator("dancing_points.remove_stage", text="Remove Stage", icon='TRASH')
 
 
-classes = (VIEW3D_PT_dancing_points, VIEW3D_PT_dancing_points_take,
+classes = (VIEW3D_PT_dancing_points, VIEW3D_PT_dancing_points_take, VIEW3D_PT_dancing_points_turns,
            VIEW3D_PT_dancing_points_synthesis, VIEW3D_PT_dancing_points_preview)
 
 classes += retarget.classes

@@ -77,6 +77,7 @@ BLENDER_FIXTURES = {
     "test_retarget.py": {"scene"},
     "test_retarget_rigs.py": {"rigs"},
     "test_runtime.py": set(),
+    "test_device_orientations.py": set(),
 }
 SLOW_MODULES = {
     # Blender's: whole scenes, renders and batch workers (test_retarget_sizes about 7.5 min)

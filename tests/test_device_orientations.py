@@ -166,3 +166,42 @@ def test_turn_options_and_metadata_on_the_command_line(segment, tmp_path):
     warn = [ln for ln in res.stderr.splitlines() if ln.startswith("warning:")]
     assert len(warn) == 1 and "left hand, right hand orientations are not followed" in warn[0]
     assert read_take(src).meta.get("lhand_turn") is None
+
+
+def test_blender_take_carries_turns_and_says_what_is_not_followed(segment, tmp_path, dp_extension):
+    """In Blender: a take's device turns travel onto the take (Device Turns),
+    back into the take it synthesises, and a take whose hand orientations
+    carry nothing is baked with the Take panel saying so."""
+    import bpy
+    from support import blender_scene_util as bsu
+    from support.ext_util import import_from_extension
+
+    take_collection = import_from_extension("operators.take_collection")
+    take = segment[0]
+    left = tuple(np.asarray(TURN) / np.linalg.norm(TURN))
+    reported = copy_take(take, quats=turned(take.quats, (None, left, mirror_turn(left))),
+                         **DeviceTurns(None, left, mirror_turn(left)).meta())
+    path = tmp_path / "turned.csv"
+    write_take(path, reported)
+    bsu.fresh_scene()
+    assert bpy.ops.dancing_points.import_take(filepath=str(path)) == {'FINISHED'}
+    coll = next(c for c in bpy.data.collections if c.dancing_points.kind == 'TAKE')
+    assert np.allclose(tuple(coll.dancing_points.lhand_turn), left, atol=1e-6)
+    assert tuple(coll.dancing_points.head_turn) == (1.0, 0.0, 0.0, 0.0)
+    back = take_collection.take_from_collection(bpy.context, coll)
+    calib = calibrate(back)
+    assert np.allclose(calib.turns.lhand, left, atol=1e-6) and np.allclose(calib.turns.rhand, mirror_turn(left),
+                                                                           atol=1e-6)
+    assert calib.turns.head is None
+    # random hand orientations: baked, and the panel says which are not followed
+    rng = np.random.default_rng(2)
+    q = take.quats.copy()
+    q[:, 1:] = random_quats(rng, 2 * len(q)).reshape(len(q), 2, 4)
+    path = tmp_path / "noisy.csv"
+    write_take(path, copy_take(take, quats=q))
+    bsu.fresh_scene()
+    assert bpy.ops.dancing_points.import_take(filepath=str(path)) == {'FINISHED'}
+    coll = next(c for c in bpy.data.collections if c.dancing_points.kind == 'TAKE')
+    bpy.context.scene.dancing_points.take = coll
+    assert bpy.ops.dancing_points.synthesize() == {'FINISHED'}
+    assert "left hand, right hand orientations are not followed" in coll.dancing_points.orientations_used
