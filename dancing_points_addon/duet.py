@@ -44,14 +44,17 @@ class Duet:
     # beside the SPEC §4 arrays (:meth:`arrays`) so that a user sees what was estimated.
     calibration: Calibration | None = None
     tracked_role: str = "leader"  # whose three points the take held (SPEC §4)
+    # The song the take was danced to (:class:`~.audio.Song`), set by whoever writes the duet
+    # (the synthesis never reads it): ``audio``, ``audio_offset_s``, ``beats``, ``tempo_bpm`` (SPEC §4).
+    song: object | None = None
 
     @property
     def n_frames(self):
         return len(self.time)
 
     def arrays(self) -> dict:
-        """The SPEC §4 arrays, and the calibration (``height_m``, ``height_source``,
-        ``floor_y``, ``floor_source``, ``devices``) when known."""
+        """The SPEC §4 arrays (with the song's keys when it has one), and the calibration
+        (``height_m``, ``height_source``, ``floor_y``, ``floor_source``, ``devices``) when known."""
         out = {"fps": np.float64(self.fps), "time": self.time, "joint_names": np.array(JOINT_NAMES),
                "leader_positions": self.leader_positions, "leader_rotations": self.leader_rotations,
                "leader_contacts": self.leader_contacts, "follower_positions": self.follower_positions,
@@ -62,6 +65,8 @@ class Duet:
             out.update(height_m=np.float64(c.height), height_source=np.array(c.height_source),
                        floor_y=np.float64(c.floor_y), floor_source=np.array(c.floor_source),
                        devices=np.array(c.devices))
+        if self.song is not None:
+            out.update(self.song.arrays(self.time))
         return out
 
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..audio import check_offset
 from ..errors import InputError
 from .devices import META_OFFSET_KEYS, parse_offset
 from .files import atomic_output, open_regular
@@ -376,6 +377,9 @@ def _parse_meta(path, lineno, text, meta):
         meta[key] = value
     elif key in META_OFFSET_KEYS:
         parse_offset(value, key, path, lineno)
+        meta[key] = value
+    elif key == "audio_offset_s":
+        check_offset(value, path, lineno)
         meta[key] = value
     else:
         meta[key] = value.lower() if key in ("role", "devices") else value
