@@ -123,6 +123,8 @@ def place_song(scene, coll, song):
     """Put the take's song in ``scene``: its sound strip and a marker on every beat
     of the take; playback then keeps to the song (AV sync) and scrubbing plays it."""
     remove_song(scene, coll)
+    for other in song_strips(scene):  # one song at a time: the newest take's
+        other.mute = True
     start = song_start_frame(coll, song)
     first = math.floor(start + 1e-9)
     scene.sequence_editor_create()
@@ -167,6 +169,58 @@ def remove_take(coll):
     for scene in bpy.data.scenes:
         remove_song(scene, coll)
     remove_collection(coll)
+
+
+def scene_song(scene):
+    """The song the scene plays from its start frame: ``(path, song time (s) at
+    scene.frame_start)`` of its unmuted sound strip (a take's first), or None."""
+    strips = _strips(scene, every=True)
+    if strips is None:
+        return None
+    sounds = [st for st in strips if st.type == 'SOUND' and not st.mute and st.sound is not None]
+    if not sounds:
+        return None
+    st = sorted(sounds, key=lambda x: (not x.get(STRIP_TAKE_PROP), x.channel))[0]
+    fps = scene.render.fps / (scene.render.fps_base or 1.0)
+    t = (scene.frame_start - st.frame_start) / fps - float(getattr(st, "sound_offset", 0.0))
+    return bpy.path.abspath(st.sound.filepath, library=st.sound.library), float(t)
+
+
+class SongPlayer:
+    """The scene's song played from a time (s; before its start: silence first)
+    on Blender's audio device, for Live; :attr:`started` is the clock then."""
+
+    def __init__(self, path, song_t):
+        self.path, self.song_t = path, float(song_t)
+        self.handle = None
+        self.started = None
+        self.error = ""
+
+    def play(self, clock):
+        import aud
+
+        self.started = clock
+        try:
+            sound = aud.Sound(self.path)
+            if self.song_t < 0:
+                sound = sound.delay(-self.song_t)
+            self.handle = aud.Device().play(sound)
+            if self.song_t > 0:
+                self.handle.position = self.song_t
+        except Exception as exc:  # noqa: BLE001 - no audio device (a headless Blender): the take still records it
+            self.error = error_message(exc, "the song could not be played")
+
+    def offset_at(self, clock):
+        """The song's time at the clock time ``clock`` (the take's time 0)."""
+        return self.song_t + (clock - self.started)
+
+    def stop(self):
+        if self.handle is not None:
+            try:
+                self.handle.stop()
+            except Exception:  # noqa: BLE001 - already ended
+                pass
+            self.handle = None
 
 
 def has_song(scene):
