@@ -44,6 +44,14 @@ def song_take(dp_extension, tmp_path):
     return take, clicks
 
 
+def _strips(scene):
+    """Every strip of the scene's sequencer (Blender 4.4 renamed sequences_all to strips_all)."""
+    ed = scene.sequence_editor
+    if ed is None:
+        return []
+    return list(ed.strips_all if hasattr(ed, "strips_all") else ed.sequences_all)
+
+
 def _click_frames(clicks, frame_start, fps):
     return frame_start + (clicks - OFFSET) * fps  # the take's time 0 (its first row) on frame_start
 
@@ -66,8 +74,7 @@ def test_the_song_plays_in_sync(song_take, tmp_path, fps):
     scene.render.fps, scene.render.fps_base = fps, 1.0
     assert bpy.ops.dancing_points.import_take(filepath=str(take), update_scene_fps=False,
                                               frame_start=10) == {'FINISHED'}
-    strips = list(scene.sequence_editor.strips_all if hasattr(scene.sequence_editor, "strips_all")
-                  else scene.sequence_editor.sequences_all)
+    strips = _strips(scene)
     assert len(strips) == 1 and strips[0].type == 'SOUND' and strips[0]["dp_take"] == "DP Take take"
     assert scene.sync_mode == 'AUDIO_SYNC' and scene.use_audio_scrub
     # Update Scene Duration as ever: the take's 120 samples at 30 Hz (the song is longer)
@@ -116,11 +123,6 @@ def test_preview_video_has_the_song(song_take, tmp_path):
     assert res == {'FINISHED'} and sorted(os.listdir(tmp_path / "p")) == ["0005.png", "0006.png"]
 
 
-def _strips(scene):
-    ed = scene.sequence_editor
-    return [] if ed is None else list(ed.strips_all)
-
-
 def test_bad_songs_in_blender(dp_extension, tmp_path):
     """Given to the import: an error and nothing made; named by the take: a
     warning and the take without it; Set Song with a bad file: nothing changed."""
@@ -140,13 +142,11 @@ def test_bad_songs_in_blender(dp_extension, tmp_path):
     assert not _strips(scene) and len(scene.timeline_markers) == 0
     click_song(tmp_path / "good.wav", 100, 22050, duration_s=3.0)
     assert bpy.ops.dancing_points.set_song(filepath=str(tmp_path / "good.wav"), offset=0.5) == {'FINISHED'}
-    strips = list(scene.sequence_editor.strips_all)
-    state = [(s.name, s.frame_start, s.sound_offset) for s in strips], len(scene.timeline_markers)
+    state = [(s.name, s.frame_start, s.sound_offset) for s in _strips(scene)], len(scene.timeline_markers)
     (tmp_path / "empty.ogg").write_bytes(b"")
     with pytest.raises(RuntimeError, match="empty.ogg: empty file"):
         bpy.ops.dancing_points.set_song(filepath=str(tmp_path / "empty.ogg"))
-    assert ([(s.name, s.frame_start, s.sound_offset) for s in scene.sequence_editor.strips_all],
-            len(scene.timeline_markers)) == state
+    assert ([(s.name, s.frame_start, s.sound_offset) for s in _strips(scene)], len(scene.timeline_markers)) == state
     assert coll["dp_song"]["offset_s"] == 0.5
 
 
@@ -154,12 +154,13 @@ def test_removing_the_take_keeps_the_users_strips(song_take, tmp_path):
     take, _ = song_take
     scene = bpy.context.scene
     ed = scene.sequence_editor_create()
-    mine = ed.strips.new_sound("My Song", str(tmp_path / "clicks.flac"), 3, 1)
+    strips = ed.strips if hasattr(ed, "strips") else ed.sequences
+    mine = strips.new_sound("My Song", str(tmp_path / "clicks.flac"), 3, 1).name
     scene.timeline_markers.new("1", frame=11)  # the user's, on a beat's frame with a beat's name
     assert bpy.ops.dancing_points.import_take(filepath=str(take), frame_start=10) == {'FINISHED'}
-    assert len(ed.strips_all) == 2 and len(scene.timeline_markers) > 5
+    assert len(_strips(scene)) == 2 and len(scene.timeline_markers) > 5
     assert bpy.ops.dancing_points.remove_take() == {'FINISHED'}
-    assert [s.name for s in ed.strips_all] == [mine.name]
+    assert [s.name for s in _strips(scene)] == [mine]
     assert [(m.name, m.frame) for m in scene.timeline_markers] == [("1", 11)]
     assert "DP Take take" not in bpy.data.collections
 
@@ -193,7 +194,7 @@ def test_live_plays_the_song_and_keeps_its_offset(song_take, tmp_path, monkeypat
     kept = read_take(out["csv"])
     assert kept.meta["audio"] == "clicks.flac"
     assert abs(float(kept.meta["audio_offset_s"]) - (1.25 - 0.004)) < 1e-6
-    strips = [st for st in scene.sequence_editor.strips_all if not st.mute]
+    strips = [st for st in _strips(scene) if not st.mute]
     assert len(strips) == 1 and strips[0]["dp_take"] == out["take"].name  # the kept take's song plays
 
 
