@@ -6,9 +6,11 @@ beat, named by the dancers' count (1 to 8).
 The song's analysis (:func:`..dancing_points_addon.audio.analyse_song`: tempo
 and beats) is kept on the take's collection (``["dp_song"]``, ``["dp_beats"]``),
 so a .blend never analyses its song again. The strip carries
-``["dp_take"]`` (its take's name) and the take lists the markers it made
-(``["dp_beat_markers"]``): removing the take (:func:`remove_take`) removes
-them, never a strip or marker of the user's.
+``["dp_take"]`` (its take's name) and the take and its strip list the
+markers it made (``["dp_beat_markers"]``): removing the take
+(:func:`remove_take`) removes them, never a strip or marker of the user's; a
+take deleted otherwise (the Outliner) leaves its strip until the next song is
+placed (:func:`sweep_orphans`).
 
 Where the song plays: a take's sample ``k`` (time ``t0 + k/30``) is keyed on
 scene frame ``frame_start + k * frame_step``; the song's time ``s`` is the
@@ -96,8 +98,9 @@ def song_strips(scene, take_name=None):
                                                                  or st.get(STRIP_TAKE_PROP) == take_name)]
 
 
-def _remove_markers(scene, coll):
-    made = coll.get(MARKERS_PROP)
+def _remove_markers(scene, holder):
+    """Remove the beat markers listed on ``holder`` (a take, or its strip)."""
+    made = holder.get(MARKERS_PROP)
     if not made:
         return
     wanted = {}
@@ -108,21 +111,37 @@ def _remove_markers(scene, coll):
         if wanted.get(key):
             wanted[key] -= 1
             scene.timeline_markers.remove(m)
-    del coll[MARKERS_PROP]
+    del holder[MARKERS_PROP]
 
 
 def remove_song(scene, coll):
     """Take a take's strip and beat markers out of ``scene`` (the song stays kept on the take)."""
     strips = _strips(scene)
-    for st in song_strips(scene, coll.name):
+    mine = song_strips(scene, coll.name)
+    for st in mine:  # each strip lists the markers placed with it (also a deleted take's, of the same name)
+        _remove_markers(scene, st)
         strips.remove(st)
-    _remove_markers(scene, coll)
+    if mine:
+        coll.pop(MARKERS_PROP, None)  # (the same markers: gone with the strip)
+    else:
+        _remove_markers(scene, coll)  # the strip was deleted by hand: the take's list
+
+
+def sweep_orphans(scene):
+    """Remove the strips (and their beat markers) of takes no longer in the file
+    (a take deleted in the Outliner, not with Remove Take)."""
+    strips = _strips(scene)
+    for st in song_strips(scene):
+        if not is_take(bpy.data.collections.get(st[STRIP_TAKE_PROP])):
+            _remove_markers(scene, st)
+            strips.remove(st)
 
 
 def place_song(scene, coll, song):
     """Put the take's song in ``scene``: its sound strip and a marker on every beat
     of the take; playback then keeps to the song (AV sync) and scrubbing plays it."""
     remove_song(scene, coll)
+    sweep_orphans(scene)
     for other in song_strips(scene):  # one song at a time: the newest take's
         other.mute = True
     start = song_start_frame(coll, song)
@@ -144,6 +163,7 @@ def place_song(scene, coll, song):
         strips.remove(st)
         raise
     _add_markers(scene, coll, song)
+    st[MARKERS_PROP] = coll[MARKERS_PROP]  # (a copy: the strip's markers go with it if the take goes alone)
     scene.sync_mode = 'AUDIO_SYNC'
     scene.use_audio_scrub = True
     return st

@@ -163,6 +163,14 @@ def test_removing_the_take_keeps_the_users_strips(song_take, tmp_path):
     assert [s.name for s in _strips(scene)] == [mine]
     assert [(m.name, m.frame) for m in scene.timeline_markers] == [("1", 11)]
     assert "DP Take take" not in bpy.data.collections
+    # a take deleted in the Outliner: its strip and markers go when the next song is placed
+    assert bpy.ops.dancing_points.import_take(filepath=str(take), frame_start=10) == {'FINISHED'}
+    from support.ext_util import import_from_extension as ext
+    ext("operators.take_collection").remove_collection(bpy.data.collections["DP Take take"])
+    assert len(_strips(scene)) == 2
+    assert bpy.ops.dancing_points.import_take(filepath=str(take), frame_start=40) == {'FINISHED'}
+    assert sorted(s.name for s in _strips(scene)) == sorted([mine, "DP Song take"])
+    assert min(m.frame for m in scene.timeline_markers if (m.name, m.frame) != ("1", 11)) >= 40
 
 
 def test_live_plays_the_song_and_keeps_its_offset(song_take, tmp_path, monkeypatch):
