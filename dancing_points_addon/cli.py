@@ -115,6 +115,9 @@ def cmd_extract(args) -> int:
             take = _joints_take(take, args)
     if args.role:
         take.meta["role"] = args.role
+    if take.meta.get("audio"):  # the song stays the same file, named relative to the new take
+        from .audio import song_reference, take_song_path
+        take.meta["audio"] = song_reference(take_song_path(take), args.output)
     write_take(args.output, take)
     dur = float(take.time[-1] - take.time[0])
     rate = (take.n_frames - 1) / dur if dur > 0 else float("nan")

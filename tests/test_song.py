@@ -188,3 +188,13 @@ def test_live_records_the_song_in_its_take(tmp_path):
     song = audio.record_song(take, tmp_path / "song.wav", 2.25, tmp_path / "rec" / "live.csv")
     assert take.meta["audio"] == "../song.wav" and take.meta["audio_offset_s"] == "2.25"
     assert song.offset_s == 2.25 and abs(song.tempo_bpm - 120) < 1.2
+
+
+def test_extract_keeps_the_song_named_from_the_new_take(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    take = short_take(tmp_path / "a" / "take.csv", 0.5, meta=["# audio=song.ogg", "# audio_offset_s=3"])
+    res = run_cli("extract", take, "-o", tmp_path / "b" / "copy.csv")
+    assert res.returncode == 0, res.stderr
+    meta = parse_take_bytes((tmp_path / "b" / "copy.csv").read_bytes(), str(tmp_path / "b" / "copy.csv")).meta
+    assert meta["audio"] == "../a/song.ogg" and meta["audio_offset_s"] == "3"
