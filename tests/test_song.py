@@ -10,7 +10,7 @@ import pytest
 
 from conftest import MODELS, ROOT
 from support.helpers import assert_bad_input, run_cli
-from support.songs import click_song
+from support.songs import band_samples, click_song
 from dancing_points_addon import audio
 from dancing_points_addon.beats import count_labels, track_beats
 from dancing_points_addon.errors import InputError
@@ -50,6 +50,16 @@ def test_beats_of_click_songs(tmp_path, ext, rate, bpm):
     assert abs(tempo - bpm) <= TEMPO_TOL * bpm
     assert worst <= BEAT_TOL_S
     assert len(beats) == len(truth)
+
+
+@pytest.mark.parametrize("bpm", [90, 128, 170])
+def test_beats_of_a_drum_groove(bpm):
+    """Kick, snare and hi-hats on the eighths: the beat, not the eighths nor every third eighth."""
+    x, truth = band_samples(bpm)
+    beats, tempo = track_beats(x, 44100)
+    print(f"groove {bpm} bpm: tempo {tempo:.3f}, worst {1000 * _match(beats, truth):.1f} ms")
+    assert abs(tempo - bpm) <= TEMPO_TOL * bpm
+    assert _match(beats, truth) <= BEAT_TOL_S
 
 
 def test_no_beats_in_silence():

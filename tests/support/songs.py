@@ -56,3 +56,29 @@ def click_onsets(samples, rate, threshold=0.1, gap_s=0.1):
         return np.zeros(0)
     starts = loud[np.r_[True, np.diff(loud) > gap_s * rate]]
     return starts / float(rate)
+
+
+def band_samples(bpm, rate=44100, duration_s=12.0, first_s=0.5, seed=1):
+    """``(samples, beat times)`` of a drum-kit groove: kick on the odd beats, snare
+    on the even ones, a hi-hat on every eighth, a pulsing bass note and noise
+    (what a click song is not: onsets of other sounds between the beats)."""
+    rng = np.random.default_rng(seed)
+    n = int(round(duration_s * rate))
+    t = np.arange(n) / rate
+    period = 60.0 / bpm
+    x = (0.02 * rng.standard_normal(n) + 0.1 * np.sin(2 * np.pi * 110 * t)
+         * (0.5 + 0.5 * np.sin(2 * np.pi * t / (4 * period)))).astype(np.float32)
+
+    def decay(seconds, tau, signal):
+        k = np.arange(int(seconds * rate))
+        return (signal(k) * np.exp(-k / (tau * rate))).astype(np.float32)
+
+    kick = decay(0.15, 0.04, lambda k: np.sin(2 * np.pi * 60 * k / rate))
+    snare = 0.5 * decay(0.1, 0.02, lambda k: rng.standard_normal(len(k)))
+    hat = 0.2 * decay(0.03, 0.005, lambda k: rng.standard_normal(len(k)))
+    beats = np.arange(first_s, duration_s - 0.5, period)
+    for i, b in enumerate(beats):
+        for at, sound in ((b, kick if i % 2 == 0 else snare), (b, hat), (b + period / 2, hat)):
+            j = int(round(at * rate))
+            x[j:j + len(sound)] += sound[:len(x[j:j + len(sound)])]
+    return x, beats
