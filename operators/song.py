@@ -229,6 +229,7 @@ class SongPlayer:
                 self.handle.position = self.song_t
         except Exception as exc:  # noqa: BLE001 - no audio device (a headless Blender): the take still records it
             self.error = error_message(exc, "the song could not be played")
+            print("Dancing Points live: " + self.error)
 
     def offset_at(self, clock):
         """The song's time at the clock time ``clock`` (the take's time 0)."""
