@@ -185,6 +185,11 @@ def test_live_plays_the_song_and_keeps_its_offset(song_take, tmp_path, monkeypat
     assert bpy.ops.dancing_points.import_take(filepath=str(take), frame_start=1) == {'FINISHED'}
     scene.frame_start = 31  # the dance starts one second into the take: song time 1.25 s
     tk = read_take(take)
+    for t in (-0.5, 1.25):  # played on Blender's device (here its null device), from before or into the song
+        player = live.SongPlayer(str(take.parent / "clicks.flac"), t)
+        player.play(0.0)
+        assert player.handle is not None and player.error == "", player.error
+        player.stop()
     played = []
     monkeypatch.setattr(live.SongPlayer, "play", lambda self, clock: (played.append(self.song_t),
                                                                        setattr(self, "started", clock)))
