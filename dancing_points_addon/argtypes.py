@@ -225,6 +225,27 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
                    help="leave the head and hands turned as the network has them (default: as the devices are)")
 
 
+def audio_offset_seconds(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and abs(v) <= 3600):
+        raise argparse.ArgumentTypeError(f"must be seconds within ±3600, got {text!r}")
+    return v
+
+
+def add_audio_arguments(p: argparse.ArgumentParser, live: bool = False) -> None:
+    """The song the take was danced to (SPEC §3 ``audio``, ``audio_offset_s``; §7)."""
+    what = "the take it writes records" if live else "the npz records its path, offset, beats and tempo"
+    p.add_argument("--audio", default=None, metavar="FILE",
+                   help=f"the song danced to (WAV, FLAC, OGG or MP3; overrides the take's audio); {what}. "
+                        "The synthesis does not read it")
+    p.add_argument("--audio-offset", type=audio_offset_seconds, default=None, metavar="S",
+                   help="the time in the song (s) at the take's time 0 (overrides the take's audio_offset_s; "
+                        "default 0)")
+
+
 def calibration_options(o) -> dict:
     """The :class:`~.runtime.SynthesisOptions` fields of :func:`add_calibration_arguments`'
     options (parsed arguments or a batch job's dict)."""

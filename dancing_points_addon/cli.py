@@ -26,7 +26,8 @@ import signal
 import sys
 import threading
 
-from .argtypes import (CLI_SIGNALS, EXIT_OK, Parser, Terminated, add_calibration_arguments, after_imports,
+from .argtypes import (CLI_SIGNALS, EXIT_OK, Parser, Terminated, add_audio_arguments, add_calibration_arguments,
+                       after_imports,
                        calibration_options, exit_for, height_metres, offset_metres, positive_float, positive_int,
                        printable, thread_count)
 from .errors import InputError
@@ -67,6 +68,25 @@ def check_not_input(args, outputs) -> None:
                                       f"choose another output path")
 
 
+def warn(text) -> None:
+    """One warning line on stderr."""
+    import sys
+    print(printable("warning: " + text), file=sys.stderr, flush=True)
+
+
+def song_from_args(take, args):
+    """The take's song (``--audio``/``--audio-offset``, else its metadata), analysed;
+    said on one line. A ``--audio`` that cannot be read is an :class:`InputError`,
+    one named by the take a warning."""
+    from .audio import take_song
+
+    song = take_song(take, getattr(args, "audio", None), getattr(args, "audio_offset", None), warn=warn)
+    if song is not None:
+        print(printable(f"song {song.path}: {song.duration_s:.1f} s, {song.tempo_bpm:.1f} bpm, "
+                        f"{len(song.beats)} beats, offset {song.offset_s:g} s"))
+    return song
+
+
 def load_input_from_args(args):
     from .formats.inputs import load_input
     return load_input(args.input, asf=args.asf, input_fps=args.input_fps, height=args.height,
@@ -96,6 +116,9 @@ def cmd_extract(args) -> int:
             take = _joints_take(take, args)
     if args.role:
         take.meta["role"] = args.role
+    if take.meta.get("audio"):  # the song stays the same file, named relative to the new take
+        from .audio import song_reference, take_song_path
+        take.meta["audio"] = song_reference(take_song_path(take), args.output)
     write_take(args.output, take)
     dur = float(take.time[-1] - take.time[0])
     rate = (take.n_frames - 1) / dur if dur > 0 else float("nan")
@@ -163,14 +186,19 @@ def cmd_synthesize(args) -> int:
     for path in outputs:
         check_output_path(path)
     check_not_input(args, outputs)
+    if args.audio:
+        from .audio import check_song_file
+        check_song_file(args.audio)  # before the take's work
     take = load_input_from_args(args)
     t0 = time.perf_counter()
+    song = song_from_args(take, args)
     role = args.role or take.meta.get("role") or "leader"
     check_models(args.models, args.threads, role)  # --models, else $DP_MODEL_DIR, else the bundled ones
     synth = Synthesizer(SynthesisOptions(models=args.models, threads=args.threads, height=args.height or take.height,
                                          foot_lock=not args.no_foot_lock, hand_ik=not args.no_hand_ik,
                                          **calibration_options(args)))
     duet = synth.synthesize(take)
+    duet.song = song
     print(printable(f"{take.source}: {duet.calibration.describe()}"))
     if duet.calibration.notice():
         print(printable(f"warning: {take.source}: {duet.calibration.notice()}"), file=sys.stderr)
@@ -208,6 +236,7 @@ def _parser_synthesize(sub) -> None:
                    help="leave the tracked dancer's head and wrists where the network puts them (no IK onto the "
                         "input)")
     add_calibration_arguments(p)
+    add_audio_arguments(p)
     p.set_defaults(func=cmd_synthesize)
 
 

@@ -44,14 +44,17 @@ class Duet:
     # beside the SPEC §4 arrays (:meth:`arrays`) so that a user sees what was estimated.
     calibration: Calibration | None = None
     tracked_role: str = "leader"  # whose three points the take held (SPEC §4)
+    # The song the take was danced to (:class:`~.audio.Song`), set by whoever writes the duet
+    # (the synthesis never reads it): ``audio``, ``audio_offset_s``, ``beats``, ``tempo_bpm`` (SPEC §4).
+    song: object | None = None
 
     @property
     def n_frames(self):
         return len(self.time)
 
     def arrays(self) -> dict:
-        """The SPEC §4 arrays, and the calibration (``height_m``, ``height_source``,
-        ``floor_y``, ``floor_source``, ``devices``) when known."""
+        """The SPEC §4 arrays (with the song's keys when it has one), and the calibration
+        (``height_m``, ``height_source``, ``floor_y``, ``floor_source``, ``devices``) when known."""
         out = {"fps": np.float64(self.fps), "time": self.time, "joint_names": np.array(JOINT_NAMES),
                "leader_positions": self.leader_positions, "leader_rotations": self.leader_rotations,
                "leader_contacts": self.leader_contacts, "follower_positions": self.follower_positions,
@@ -66,6 +69,8 @@ class Duet:
                        orientations_followed=np.array(c.followed, dtype=bool),
                        device_turns=np.array([t if t is not None else (1.0, 0.0, 0.0, 0.0) for t in
                                               (c.turns.head, c.turns.lhand, c.turns.rhand)], dtype=np.float64))
+        if self.song is not None:
+            out.update(self.song.arrays(self.time))
         return out
 
 

@@ -7,6 +7,9 @@ Thin translators between Blender and the bpy-free core (``dancing_points_addon``
   AMC file -> a take collection with three keyframed empties
   (``take_collection``; BVH/FBX read by ``take_rig``, the source body kept by
   ``take_ghost``); File > Import menu entry and drag-and-drop (FileHandler).
+- ``dancing_points.set_song`` / ``remove_take`` (``song``): the take's song as
+  a sound strip lined up with it, its beats as timeline markers; removing a
+  take removes them.
 - ``dancing_points.synthesize`` (``synthesize``): the active take -> a baked
   duet (``bake``): leader and follower armatures with skinned bodies.
 - ``dancing_points.render_preview`` (``render``): Workbench render of the range.
@@ -18,9 +21,9 @@ is a take or a duet), ``compat`` the Blender-version shims (legacy vs slotted
 actions, bulk keyframe I/O).
 """
 
-from . import props, take_io, synthesize, render, retarget, batch_cli, method_view, stage, live
+from . import props, take_io, song, synthesize, render, retarget, batch_cli, method_view, stage, live
 
-_modules = (props, take_io, synthesize, render, retarget, batch_cli, method_view, stage, live)
+_modules = (props, song, take_io, synthesize, render, retarget, batch_cli, method_view, stage, live)
 
 
 def register():

@@ -218,6 +218,7 @@ def convert_job(job, progress):
     ``npz``, ``bvh_leader``, ``bvh_follower``). Returns ``{"frames": n}``; raises
     on a bad take (the worker reports it and removes the temporary files)."""
     from .props import active_take
+    from .song import song_of
     from .synthesize import make_synthesizer
     from .take_collection import take_from_collection
     from . import bake
@@ -227,9 +228,12 @@ def convert_job(job, progress):
     temps = job["temps"]
     context = _fresh_scene()
     try:
+        song_opts = {"audio": opts["audio"]} if opts.get("audio") else {}
+        if opts.get("audio_offset") is not None:
+            song_opts["audio_offset"] = float(opts["audio_offset"])
         res = bpy.ops.dancing_points.import_take(filepath=path, input_fps=float(opts.get("input_fps") or 0.0),
                                                  height=float(opts.get("height") or 0.0),
-                                                 role=opts.get("role") or 'FILE')
+                                                 role=opts.get("role") or 'FILE', **song_opts)
     except RuntimeError as exc:
         raise _op_error(exc, path) from None
     if 'FINISHED' not in res:
@@ -246,6 +250,7 @@ def convert_job(job, progress):
     except UserError as exc:
         raise UserError(error_message(exc)) from None
     duet = synth.synthesize(take, progress=lambda i, n: progress(0.1 + 0.6 * i / max(n, 1)))
+    duet.song = song_of(coll)
     write_duet_files(temps, duet)
     if any(k in temps for k in ("blend", "fbx", "mp4")):
         duet_coll, _ = bake.bake_duet(context, duet, coll.name, coll.dancing_points.frame_start)

@@ -38,6 +38,7 @@ from ..dancing_points_addon.formats.limits import FLOOR_RANGE_M, HEIGHT_RANGE_M
 from ..dancing_points_addon.live import OSC_PORT, ROLES, VMC_PORT
 from ..dancing_points_addon.live.xr import read_xr_state, xr_to_motion
 from . import bake
+from .song import SongPlayer, scene_song
 from .props import ROLE_PROP, check_dancer
 
 TICK_S = 1.0 / 120.0  # the timer's interval: poses at most this late after their frame
@@ -110,6 +111,7 @@ class LiveRun:
         self.timer = False
         self.next_status = 0.0
         self.error = None
+        self.song = None  # the scene's song (song.SongPlayer), played when the dance starts
 
 
 class StopReport(UserError):
@@ -201,6 +203,9 @@ def start(context, settings):
     sink.append(session)
     if receiver is not None:
         receiver.start()
+    found = scene_song(context.scene)
+    if found is not None:
+        run.song = SongPlayer(*found)
     _RUN = run
     return run
 
@@ -245,6 +250,8 @@ def tick(context=None, now=None):
     elif run.receiver.error is not None and run.error is None:
         run.error = run.receiver.error
     s.pump(now, PUMP_BUDGET_S)
+    if run.song is not None and run.song.started is None and s.t_first is not None:
+        run.song.play(now)  # the dance starts: the song from the scene's start frame
     latest = s.latest
     if latest is not None and latest[0] != run.last_k:
         if run.scale is None:
@@ -352,6 +359,8 @@ def stop(context=None, keep=True, collection=True, bake_duet=None, folder=None):
         bpy.app.timers.unregister(_timer)
     run.timer = False
     try:
+        if run.song is not None:
+            run.song.stop()
         if run.receiver is not None:
             run.receiver.stop()
         run.session.stop()
@@ -382,6 +391,10 @@ def stop(context=None, keep=True, collection=True, bake_duet=None, folder=None):
                 why, raw.n_frames, error_message(write_exc, "writing it failed"))) from exc
         raise StopReport("{:s}; Live stopped: the take ({:d} rows, no duet made) was saved to {:s}".format(
             why, raw.n_frames, path)) from exc
+    if run.song is not None and run.song.started is not None and run.session.t_first is not None:
+        from ..dancing_points_addon.audio import song_reference
+        result.take.meta["audio"] = song_reference(run.song.path, path)  # the song as it played
+        result.take.meta["audio_offset_s"] = "{:.6f}".format(run.song.offset_at(run.session.t_first))
     write_take(path, result.take)
     out = {"csv": path, "take": None, "duet": None, "result": result, "warnings": list(run.session.warnings)}
     if not collection:

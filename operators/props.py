@@ -103,6 +103,10 @@ class DP_CollectionSettings(bpy.types.PropertyGroup):
     t0: FloatProperty(name="Start Time", description="Time (s) of the take's first sample in the file", default=0.0)
     axis_forward: StringProperty(name="Forward", default='-Z')
     axis_up: StringProperty(name="Up", default='Y')
+    # the song (SPEC §3 audio, audio_offset_s), as last placed by the import or Set Song (shown in the panel)
+    audio: StringProperty(name="Song", subtype='FILE_PATH', description="The song the take was danced to")
+    audio_offset: FloatProperty(name="Song Offset", default=0.0, unit='TIME_ABSOLUTE',
+                                description="The time in the song (s) at the take's time 0")
     # -- duet ------------------------------------------------------------------
     take_name: StringProperty(name="Take", description="Name of the take collection this duet was baked from")
     version: IntProperty(name="Version", description="Bake number for its take (1, 2, ...)", default=0)

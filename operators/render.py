@@ -4,8 +4,9 @@ frame range to a PNG sequence or a video. Works in ``--background``; the
 scene's render settings are restored afterwards.
 
 The look (studio light, material colours, shadows, cavity, outlines) and the
-burn-in (the take's name, the frame and the time: Blender's render stamp) are
-set for the render only. It renders through the DP Camera on the scene's
+burn-in (the take's name, the frame and the time, and with a song the beat's
+count: Blender's render stamp) are set for the render only. A video has the
+scene's song (AAC) when a take's song is in the sequencer. It renders through the DP Camera on the scene's
 camera mode (follow / wide), or through the scene's own camera when that is
 chosen (``stage.preview_camera``); the scene's camera is put back afterwards.
 The user's objects marked ``["dp_hide_in_preview"]``
@@ -77,6 +78,22 @@ def stamp_font_size(scene):
     return max(8, int(round(r.resolution_y * r.resolution_percentage / 100.0 * 24 / 540)))
 
 
+def set_audio(saved, scene, video):
+    """A video gets the scene's song (AAC) when a take's song is in its sequencer;
+    PNG frames stay silent."""
+    from .song import has_song
+
+    ff = scene.render.ffmpeg
+    if video and has_song(scene):
+        saved.set(ff, "audio_codec", 'AAC')
+        saved.set_if(ff, "audio_channels", 'STEREO')
+        saved.set_if(ff, "audio_mixrate", 48000)
+        saved.set_if(ff, "audio_bitrate", 192)
+        return True
+    saved.set(ff, "audio_codec", 'NONE')
+    return False
+
+
 def set_look(saved, scene, burn_in):
     shading = scene.display.shading
     for attr, value in LOOK:
@@ -92,6 +109,9 @@ def set_look(saved, scene, burn_in):
         saved.set_if(r, "use_stamp_time", True)
         for attr in STAMP_OFF:
             saved.set_if(r, attr, False)
+        from .song import has_song
+        if has_song(scene):  # the dancers' count: the name of the last beat marker ("Marker 5")
+            saved.set_if(r, "use_stamp_marker", True)
         saved.set_if(r, "stamp_font_size", stamp_font_size(scene))
         saved.set_if(r, "stamp_foreground", (1.0, 1.0, 1.0, 1.0))
         saved.set_if(r, "stamp_background", (0.0, 0.0, 0.0, 0.55))
@@ -214,6 +234,7 @@ class DANCING_POINTS_OT_render_preview(bpy.types.Operator):
                 saved.set(img, "color_mode", 'RGB')
             else:
                 saved.set(img, "color_mode", 'RGBA')
+            with_song = set_audio(saved, scene, self.file_format == 'FFMPEG')
             frame = scene.frame_current
             try:
                 bpy.ops.render.render(animation=True, scene=scene.name)
@@ -230,7 +251,8 @@ class DANCING_POINTS_OT_render_preview(bpy.types.Operator):
         if problem:
             self.report({'ERROR'}, "render failed: {:s}".format(problem))
             return {'CANCELLED'}
-        self.report({'INFO'}, "Rendered frames {:d}-{:d} through '{:s}' to {:s}".format(f0, f1, camera.name, files[0]))
+        self.report({'INFO'}, "Rendered frames {:d}-{:d} through '{:s}' to {:s}{:s}".format(
+            f0, f1, camera.name, files[0], " with the song" if with_song else ""))
         return {'FINISHED'}
 
 

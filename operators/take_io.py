@@ -25,6 +25,8 @@ from ..dancing_points_addon.formats.limits import check_height, check_rate
 from ..dancing_points_addon.formats.rig_rest import rig_problem_line
 from ..dancing_points_addon.formats.take import ORIENTATIONS_NONE, ORIENTATIONS_PROBLEM_KEY, take_orientations_usable
 from ..dancing_points_addon.resample import NET_FPS, resample_take
+from ..dancing_points_addon.audio import take_song
+from .song import place_song, song_of, store_song
 from .take_collection import remove_collection, build_take_collection
 from .take_ghost import remove_ghost, build_amc_ghost, keep_ghost
 from .take_rig import read_rig_take
@@ -115,6 +117,12 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
                                    description="Set the scene to the take's 30 fps")
     update_scene_duration: BoolProperty(name="Update Scene Duration", default=True,
                                         description="Set the scene's frame range to the take")
+    audio: StringProperty(name="Song", default="", subtype='FILE_PATH',
+                          description="The song danced to (WAV, FLAC, OGG, MP3; empty: the take's audio, if any): "
+                                      "a sound strip lined up with the take, and its beats as timeline markers")
+    audio_offset: FloatProperty(name="Song Offset", default=0.0, min=-3600.0, max=3600.0, unit='TIME_ABSOLUTE',
+                                description="The time in the song (s) at the take's time 0 (when not set: the "
+                                            "take's audio_offset_s, else 0)")
     keep_source: BoolProperty(name="Keep Source Body", default=False,
                               description="BVH, FBX, AMC: keep the file's full body in the take as a wire "
                                           "ghost, to compare with the synthesised leader")
@@ -124,7 +132,7 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
         layout.use_property_split = True
         layout.use_property_decorate = False
         for prop in ("frame_start", "input_fps", "role", "armature", "height", "devices", "units", "update_scene_fps",
-                     "update_scene_duration", "keep_source", "axis_forward", "axis_up"):
+                     "update_scene_duration", "audio", "audio_offset", "keep_source", "axis_forward", "axis_up"):
             layout.prop(self, prop)
 
     def invoke(self, context, event):
@@ -139,8 +147,10 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
             self.report({'ERROR'}, error_message(exc, "Dancing Points import failed"))
             return {'CANCELLED'}
         arm = getattr(self, "_source_armature", "")
-        self.report({'INFO'}, "Imported take '{:s}' ({:d} frames at 30 fps{:s})".format(
-            coll.name, coll.dancing_points.n_frames, ", armature '{:s}'".format(arm) if arm else ""))
+        song = song_of(coll)
+        self.report({'INFO'}, "Imported take '{:s}' ({:d} frames at 30 fps{:s}{:s})".format(
+            coll.name, coll.dancing_points.n_frames, ", armature '{:s}'".format(arm) if arm else "",
+            ", song '{:s}' at {:.1f} bpm".format(os.path.basename(song.path), song.tempo_bpm) if song else ""))
         return {'FINISHED'}
 
     def import_file(self, context):
@@ -151,12 +161,31 @@ class DANCING_POINTS_OT_import_take(bpy.types.Operator, ImportHelper):
             take = load_any(context, path, self.input_fps, self.height, self.axis_forward, self.axis_up,
                             self.units, ghost, role=None if self.role == 'FILE' else self.role,
                             armature=self.armature.strip())
+            song = self._song(take, path)
             coll = self._make_take(context, path, ext, take, ghost)
+            if song is not None:
+                try:
+                    place_song(context.scene, coll, song)
+                    store_song(coll, song)
+                except Exception:
+                    remove_collection(coll)
+                    raise
         except Exception:
             if ghost:  # the kept rig, when the take could not be made
                 remove_ghost(ghost["objects"])
             raise
         return coll
+
+    def _song(self, take, path):
+        """The take's song, analysed: the operator's Song (an unreadable one fails the
+        import) else the take's ``audio`` (an unreadable one is a warning)."""
+        offset = self.audio_offset if self.properties.is_property_set("audio_offset") else None
+        audio = bpy.path.abspath(self.audio) if self.audio else None
+        warnings = []
+        song = take_song(take, audio, offset, warn=warnings.append)
+        for w in warnings:
+            self.report({'WARNING'}, w)
+        return song
 
     def _make_take(self, context, path, ext, take, ghost):
         conv = np.array(axis_conversion(from_forward=self.axis_forward, from_up=self.axis_up).to_3x3())

@@ -76,6 +76,17 @@ class VIEW3D_PT_dancing_points_take(SubPanel, bpy.types.Panel):
             col.label(text="Floor at {:+.3f} m ({:s})".format(s.floor_used, s.floor_source))
             if s.orientations_used:
                 col.label(text=s.orientations_used, icon='ERROR')
+        from ..operators.song import song_of
+        song = song_of(take)
+        col = layout.column(align=True)
+        if song is not None:
+            col.label(text=os.path.basename(song.path), icon='SOUND')
+            col.label(text="{:.1f} bpm, {:d} beats, offset {:.3f} s".format(song.tempo_bpm, len(song.beats),
+                                                                            song.offset_s))
+        op = col.operator("dancing_points.set_song", text="Change Song..." if song else "Set Song...",
+                          icon='SOUND')
+        op.take = take.name
+        layout.operator("dancing_points.remove_take", text="Remove Take", icon='TRASH').take = take.name
 
 
 class VIEW3D_PT_dancing_points_turns(bpy.types.Panel):

@@ -66,6 +66,7 @@ BLENDER_MODULES = {
     # every test of these needs bpy (a module-level importorskip, or Blender batch workers)
     "test_batch.py", "test_blender_addon.py", "test_extension.py", "test_fbx_input.py",
     "test_fk_blender.py", "test_live_blender.py", "test_preview.py", "test_retarget_sizes.py",
+    "test_song_blender.py",
 }
 # Core modules with a Blender part: only the tests that ask for one of these
 # fixtures, are skipped without bpy (a skipif naming bpy), or import bpy themselves.
@@ -83,6 +84,7 @@ SLOW_MODULES = {
     # Blender's: whole scenes, renders and batch workers (test_retarget_sizes about 7.5 min)
     "test_batch.py", "test_blender_addon.py", "test_fbx_input.py", "test_live_blender.py",
     "test_preview.py", "test_retarget.py", "test_retarget_rigs.py", "test_retarget_sizes.py",
+    "test_song_blender.py",
     # the core's, as timed on 2026-11-28 (2 cores shared with other runs): runtime 947 s,
     # cluster 268, noise 204, outputs_safety 192, roles 148, devices 127, live 122, training 116
     "test_cluster.py", "test_devices.py", "test_live.py", "test_noise.py", "test_outputs_safety.py",

@@ -137,7 +137,7 @@ def test_disable_and_reenable_cleanly(dp_extension):
 
 def test_build_extension_bundles_models_and_wheels(tmp_path):
     """``python -m tools.build_extension``: Blender's own build of the
-    tracked files, with the ONNX Runtime wheels of the platform (never numpy), the
+    tracked files, with the ONNX Runtime and soundfile wheels of the platform (never numpy), the
     shipped models, and no training code, tests or data; each zip validated."""
     res = subprocess.run([sys.executable, "-m", "tools.build_extension", "-o", str(tmp_path),
                           "--platform", "linux-x64"], cwd=ROOT, capture_output=True, text=True, timeout=900)
@@ -154,6 +154,9 @@ def test_build_extension_bundles_models_and_wheels(tmp_path):
     assert any(n.startswith("wheels/onnxruntime-") and "manylinux" in n for n in wheels), wheels
     assert not any(n.lower().startswith("wheels/numpy") for n in wheels)
     assert any(n.startswith("wheels/python_osc-1.10.2-") and n.endswith("-none-any.whl") for n in wheels), wheels
+    # the songs' decoder: libsndfile in soundfile's platform wheel, with cffi's
+    assert any(n.startswith("wheels/soundfile-0.14.0-") and "manylinux" in n for n in wheels), wheels
+    assert any(n.startswith("wheels/cffi-") and "manylinux" in n for n in wheels), wheels
     assert sorted("wheels/" + w.split("/")[-1] for w in manifest["wheels"]) == sorted(wheels)
     leaked = [n for n in names if n.startswith(("training/", "tests/", "benchmarks/", ".ci/", "docs/", "cache/"))
               or n.lower().endswith((".amc", ".asf", ".glb", ".fbx", ".npz"))]

@@ -1,6 +1,6 @@
 """Build the extension zips with Blender's own tool, one per platform, with the
-ONNX Runtime wheels (and their dependencies, never numpy: Blender ships it)
-and the pure-Python ``python-osc`` wheel of the live receiver.
+ONNX Runtime and ``soundfile`` wheels (and their dependencies, never numpy:
+Blender ships it) and the pure-Python ``python-osc`` wheel of the live receiver.
 
     python -m tools.build_extension [-o dist] [--platform NAME] [--no-wheels]
 
@@ -28,10 +28,13 @@ from dancing_points_addon.errors import InputError, UserError, error_message
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 ONNXRUNTIME = "onnxruntime==1.22.1"
+# The songs' decoder (libsndfile inside the wheel: WAV, FLAC, OGG, MP3) with its cffi and pycparser.
+SOUNDFILE = "soundfile==0.14.0"
+PLATFORM_WHEELS = (ONNXRUNTIME, SOUNDFILE)  # one build per platform, with their dependencies (never numpy)
 PURE_WHEELS = ("python-osc==1.10.2",)  # pure Python (py3-none-any): one wheel for every platform
-# Blender platform -> pip platform tags to try (first match wins)
+# Blender platform -> the pip platform tags its wheels may have (cffi's Linux wheel is manylinux_2_17)
 PLATFORMS = {
-    "linux-x64": ["manylinux_2_28_x86_64"],
+    "linux-x64": ["manylinux_2_28_x86_64", "manylinux_2_17_x86_64"],
     "windows-x64": ["win_amd64"],
     "macos-arm64": ["macosx_13_0_arm64", "macosx_14_0_arm64"],
 }
@@ -54,20 +57,20 @@ def tracked_files(root=ROOT) -> list[str]:
 
 
 def download_wheels(platform: str, cache_dir: str) -> list[str]:
-    """Wheels of onnxruntime and its dependencies (no numpy) for one platform."""
+    """Wheels of onnxruntime, soundfile and their dependencies (no numpy) for one platform."""
     dest = os.path.join(cache_dir, platform)
     os.makedirs(dest, exist_ok=True)
-    if not glob.glob(os.path.join(dest, "onnxruntime-*.whl")):
-        last = None
-        for tag in PLATFORMS[platform]:
-            res = subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--only-binary=:all:",
-                                  "--python-version", PYTHON, "--implementation", "cp", "--platform", tag,
-                                  "-d", dest, ONNXRUNTIME], capture_output=True, text=True)
-            if res.returncode == 0:
-                break
+    for req in PLATFORM_WHEELS:
+        stem = req.split("==")[0].replace("-", "_") + "-"
+        if glob.glob(os.path.join(dest, stem + "*.whl")):
+            continue
+        tags = [arg for tag in PLATFORMS[platform] for arg in ("--platform", tag)]  # any of them (a package
+        res = subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--only-binary=:all:",  # and its deps)
+                              "--python-version", PYTHON, "--implementation", "cp", *tags, "-d", dest, req],
+                             capture_output=True, text=True)
+        if res.returncode != 0:
             last = res.stderr.strip().splitlines()[-1:] or ["pip failed"]
-        else:
-            raise UserError(f"cannot download {ONNXRUNTIME} for {platform}: {last[0]}")
+            raise UserError(f"cannot download {req} for {platform}: {last[0]}")
     for req in PURE_WHEELS:
         stem = req.split("==")[0].replace("-", "_") + "-"
         if not glob.glob(os.path.join(dest, stem + "*.whl")):

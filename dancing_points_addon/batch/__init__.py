@@ -35,8 +35,8 @@ import sys
 import time
 
 from ..argtypes import (EXIT_BAD_INPUT, EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED,
-                        add_calibration_arguments, height_metres, positive_float, positive_int, printable,
-                        thread_count)
+                        add_audio_arguments, add_calibration_arguments, height_metres, positive_float,
+                        positive_int, printable, thread_count)
 from ..errors import InputError, one_line
 from .options import (BPY_FORMATS, BPY_INPUTS, CORE_INPUTS, FORMATS, check_rigs, default_jobs, input_needs_bpy,
                       job_options, resolve_model_dir)
@@ -100,6 +100,7 @@ def add_arguments(p: argparse.ArgumentParser, default_format: str = "npz") -> No
     p.add_argument("--height", type=height_metres, default=None, metavar="H",
                    help="the tracked dancer's height in metres (default: each take's height_m, else estimated)")
     add_calibration_arguments(p)
+    add_audio_arguments(p)
     p.add_argument("--no-foot-lock", action="store_true", help="turn contact-based foot locking off")
     p.add_argument("--no-hand-ik", action="store_true",
                    help="leave the leader's head and wrists where the network puts them (no IK onto the input)")
@@ -152,6 +153,9 @@ def run(args, worker_cmd=None, out=None, err=None, in_blender=False) -> int:
     if args.asf and not os.path.isfile(args.asf):
         raise InputError(args.asf, "no such ASF file")
     check_rigs(args, needs_bpy)
+    if getattr(args, "audio", None):  # every take's song: read once, here, before any work
+        from ..audio import read_song
+        read_song(args.audio)
     if args.asf and needs_bpy:
         raise InputError(args.asf, "--asf works with the npz and bvh formats only (without --render); "
                                    "put the ASF beside the AMC files instead")

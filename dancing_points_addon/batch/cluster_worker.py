@@ -180,15 +180,17 @@ def core_convert(job, progress):
     from ..formats.inputs import load_input
     from ..duet import duet_motions
     from ..runtime import Synthesizer
-    from .options import synthesis_options
+    from .options import job_song, synthesis_options
 
     o = job["options"]
     kinds = set(job["temps"])
     take = load_input(job["input"], asf=o.get("asf"), input_fps=o.get("input_fps"), height=o.get("height"),
                       role=o.get("role"))
+    song = job_song(o, take)  # (--audio; a take's own relative song is not beside its scratch copy)
     progress(0.05)
     synth = Synthesizer(synthesis_options(o, take.height))
     duet = synth.synthesize(take, progress=lambda i, n: progress(0.05 + 0.9 * i / max(n, 1)))
+    duet.song = song
     outputs = {}
     if "npz" in kinds:
         buf = io.BytesIO()

@@ -9,6 +9,7 @@ converter and the Blender side's ``convert_job`` alike).
 from __future__ import annotations
 
 import os
+import sys
 
 from ..errors import InputError
 
@@ -78,8 +79,20 @@ def job_options(args, model_dir) -> dict:
             "head_offset": getattr(args, "head_offset", None), "hand_offset": getattr(args, "hand_offset", None),
             "head_turn": getattr(args, "head_turn", None), "hand_turn": getattr(args, "hand_turn", None),
             "no_device_follow": bool(getattr(args, "no_device_follow", False)),
+            "audio": _abs(getattr(args, "audio", None)), "audio_offset": getattr(args, "audio_offset", None),
             "leader_rig": _abs(getattr(args, "leader_rig", None)),
             "follower_rig": _abs(getattr(args, "follower_rig", None))}
+
+
+def job_song(o: dict, take):
+    """The song of a job's take (``--audio``, else the take's; see :func:`..audio.take_song`);
+    a song the take names that cannot be read is a warning on the worker's stderr."""
+    from ..audio import take_song
+
+    def warn(text):
+        print("warning: " + text, file=sys.stderr, flush=True)
+
+    return take_song(take, o.get("audio"), o.get("audio_offset"), warn=warn)
 
 
 def synthesis_options(o: dict, take_height=None):

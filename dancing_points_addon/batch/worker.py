@@ -25,7 +25,7 @@ import time
 from ..errors import InputError, error_message
 from . import messages
 from ..argtypes import EXIT_FAILURE, EXIT_TERMINATED, SINGLE_THREAD_ENV, after_imports
-from .options import synthesis_options
+from .options import job_song, synthesis_options
 from .plan import remove_temps
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the checkout / extension folder
@@ -57,9 +57,11 @@ class CoreConverter:
         o = job["options"]
         take = load_input(job["input"], asf=o.get("asf"), input_fps=o.get("input_fps"), height=o.get("height"),
                       role=o.get("role"))
+        song = job_song(o, take)
         progress(0.05)
         synth = Synthesizer(synthesis_options(o, take.height))
         duet = synth.synthesize(take, progress=lambda i, n: progress(0.05 + 0.9 * i / max(n, 1)))
+        duet.song = song
         write_duet_files(job["temps"], duet)
         return {"frames": int(duet.n_frames)}
 

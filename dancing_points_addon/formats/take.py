@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..audio import check_offset
 from ..errors import InputError
 from .devices import META_OFFSET_KEYS, META_TURN_KEYS, parse_offset, parse_turn
 from .files import atomic_output, open_regular
@@ -401,6 +402,9 @@ def _parse_meta(path, lineno, text, meta):
     elif key == ORIENTATIONS_KEY and value.lower() not in ORIENTATION_VALUES:
         raise InputError(path, f"unknown orientations value {value!r} (expected {' or '.join(ORIENTATION_VALUES)})",
                          lineno)
+    elif key == "audio_offset_s":
+        check_offset(value, path, lineno)
+        meta[key] = value
     else:
         meta[key] = value.lower() if key in ("role", "devices", ORIENTATIONS_KEY) else value
 

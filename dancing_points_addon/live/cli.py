@@ -12,8 +12,8 @@ import os
 import sys
 import time
 
-from ..argtypes import (CLI_SIGNALS, EXIT_OK, add_calibration_arguments, calibration_options, height_metres,
-                        port_number, positive_float, printable, share, thread_count)
+from ..argtypes import (CLI_SIGNALS, EXIT_OK, add_audio_arguments, add_calibration_arguments, calibration_options,
+                        height_metres, port_number, positive_float, printable, share, thread_count)
 from ..errors import InputError, UserError
 from ..formats.files import check_output_path
 from . import OSC_PORT, VMC_PORT
@@ -105,6 +105,9 @@ def cmd_live(args) -> int:
     from .session import LiveOptions, LiveSession
 
     out, csv = _outputs(args.output)
+    if args.audio:  # the song the dancer dances to: read once, before anything listens
+        from ..audio import read_song
+        read_song(args.audio)
     check_models(args.models, args.threads, args.role or "leader")
     port = args.port or _default_port(args.format)
     cal = calibration_options(args)
@@ -165,6 +168,9 @@ def cmd_live(args) -> int:
     warn(False)  # (a calibration made at the end)
     if result.duet is None:
         raise UserError("the recording is too short for a duet (under two 30 Hz frames)")
+    if args.audio:
+        from ..audio import record_song
+        result.duet.song = record_song(result.take, args.audio, args.audio_offset or 0.0, csv)
     atomic_outputs([(csv, lambda f: f.write(take_to_text(result.take).encode("utf-8"))),
                     (out, lambda f: write_npz(f, result.duet.arrays()))], "wb")
     c = result.counters
@@ -209,4 +215,5 @@ def parser_live(sub) -> None:
     p.add_argument("--models", default=None, metavar="DIR",
                    help="folder with the ONNX models (default: $DP_MODEL_DIR, else the bundled models/)")
     add_calibration_arguments(p)
+    add_audio_arguments(p, live=True)
     p.set_defaults(func=cmd_live)
