@@ -177,16 +177,23 @@ class DeviceTurns:
 def turns_for(meta: dict, head=None, hand=None, path="<take>") -> DeviceTurns:
     """The device turns of a take: its metadata, then the user's (``head``: a
     quaternion; ``hand``: the left hand's, mirrored for the right)."""
+    return DeviceTurns(**_per_device(meta, META_TURN_KEYS, parse_turn, head, hand, mirror_turn, path))
+
+
+def _per_device(meta, keys, parse, head, hand, mirror, path) -> dict:
+    """``{device: value}`` of a take: its metadata ``keys`` (head, lhand, rhand)
+    read by ``parse``, then the user's ``head`` and ``hand`` (the left hand's,
+    ``mirror`` of it for the right)."""
     over = {}
-    for key, dev in zip(META_TURN_KEYS, ("head", "lhand", "rhand")):
+    for key, dev in zip(keys, ("head", "lhand", "rhand")):
         if meta.get(key) not in (None, ""):
-            over[dev] = parse_turn(meta[key], key, path)
+            over[dev] = parse(meta[key], key, path)
     if head is not None:
         over["head"] = tuple(head)
     if hand is not None:
         over["lhand"] = tuple(hand)
-        over["rhand"] = mirror_turn(hand)
-    return DeviceTurns(**over)
+        over["rhand"] = tuple(mirror(hand))
+    return over
 
 
 def check_devices(value, path="<take>", line=None) -> str:
@@ -199,16 +206,9 @@ def check_devices(value, path="<take>", line=None) -> str:
 def offsets_for(meta: dict, head=None, hand=None, path="<take>") -> DeviceOffsets:
     """The offsets of a take: the defaults, the take's own (metadata), then the
     user's (``head``: a 3-tuple; ``hand``: the left hand's, mirrored for the right)."""
-    over = {}
-    for key, dev in zip(META_OFFSET_KEYS, ("head", "lhand", "rhand")):
-        if meta.get(key) not in (None, ""):
-            over[dev] = parse_offset(meta[key], key, path)
-    if head is not None:
-        over["head"] = tuple(head)
-    if hand is not None:
-        over["lhand"] = tuple(hand)
-        over["rhand"] = (-hand[0], hand[1], hand[2])  # the mirror image: grip +X flips with the side
-    return DeviceOffsets(**over)
+    # the mirror image: grip +X flips with the side
+    return DeviceOffsets(**_per_device(meta, META_OFFSET_KEYS, parse_offset, head, hand,
+                                       lambda v: (-v[0], v[1], v[2]), path))
 
 
 def openxr_to_points(positions, quats, offsets: np.ndarray):
