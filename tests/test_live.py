@@ -583,8 +583,8 @@ def test_stream_sends_in_real_time_and_drops_on_purpose(take):
 
 # --------------------------------------------------------------------------- two processes
 
-_RECEIVED = re.compile(r"received (\d+) packets: used (\d+), late (\d+), malformed (\d+), ignored (\d+); "
-                       r"lost on the way (\d+) samples")
+_RECEIVED = re.compile(r"received (\d+) packets: used (\d+), late (\d+), malformed (\d+), ignored (\d+), "
+                       r"from other senders (\d+); lost on the way (\d+) samples")
 _SENT = re.compile(r"sent (\d+) packets \((\d+) samples, (\d+) dropped on purpose\)")
 _LATENCY = re.compile(r"median ([\d.]+) ms, 99th percentile ([\d.]+) ms; after the calibration's catch-up: "
                       r"median ([\d.]+) ms, 99th percentile ([\d.]+) ms")
@@ -602,14 +602,15 @@ def test_stream_and_live_processes(tmp_path, fmt, drop, extra):
     sender, stdout, _ = _stream_into(live, port, SAMPLE, "--format", fmt, "--rate", "72", "--duration", "10",
                                      "--drop", drop, *extra)
     sent, samples, dropped = map(int, _SENT.search(sender.stdout).groups())
-    received, used, late, malformed, ignored, lost = map(int, _RECEIVED.search(stdout).groups())
+    received, used, late, malformed, ignored, others, lost = map(int, _RECEIVED.search(stdout).groups())
     med, p99, smed, sp99 = map(float, _LATENCY.search(stdout).groups())
     per = 4 if "--messages" in extra else 1  # datagrams a sample
     print(f"\n{fmt} drop {drop}: sent {sent} ({samples} samples, {dropped} dropped on purpose), received "
           f"{received} (used {used}, late {late}, malformed {malformed}, ignored {ignored}), lost {lost}; "
           f"latency median {med} ms, p99 {p99} ms (caught up: median {smed} ms, p99 {sp99} ms)")
     assert received == sent == used + late + malformed + ignored  # every datagram sent arrived, counted once
-    assert late == malformed == ignored == 0
+    assert late == malformed == ignored == others == 0
+    assert "locked onto the sender 127.0.0.1:" in stdout and "; no other sender" in stdout
     if per == 1:  # one datagram a sample: the ones left out are the numbered samples found missing
         assert received + dropped == samples
         assert 0 <= dropped - lost <= 3  # (dropped samples after the last one received cannot be seen)

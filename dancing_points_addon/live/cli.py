@@ -8,6 +8,7 @@ SPEC §4; what ``synthesize OUT.csv`` gives) together: both or neither.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -17,9 +18,30 @@ from ..argtypes import (CLI_SIGNALS, EXIT_OK, add_calibration_arguments, calibra
 from ..errors import InputError, UserError
 from ..formats.files import check_output_path
 from . import OSC_PORT, VMC_PORT
+from .receiver import FOLLOW_RESTART_S, parse_sender
 
 STATUS_EVERY_S = 0.5  # on a terminal the status line is redrawn this often
 STATUS_LOG_EVERY_S = 5.0  # elsewhere a status line is printed this often
+
+
+def seconds_or_zero(text: str) -> float:
+    """A number of seconds, 0 or more."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = -1.0
+    if not (math.isfinite(v) and v >= 0.0):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds, 0 or more, got {text!r}")
+    return v
+
+
+def sender_address(text: str) -> str:
+    """``ADDR[:PORT]``, checked (:func:`.receiver.parse_sender`)."""
+    try:
+        parse_sender(text)
+    except UserError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text.strip()
 
 
 def _default_port(fmt: str) -> int:
@@ -101,10 +123,11 @@ def cmd_live(args) -> int:
     from ..formats.take import take_to_text
     from ..nets import check_models
     from .protocol import decoder_for
-    from .receiver import Counters, SampleAssembler, UdpReceiver
-    from .session import LiveOptions, LiveSession
+    from .receiver import Counters, SenderGate, UdpReceiver
+    from .session import LiveOptions, LiveSession, ignored_senders_text
 
     out, csv = _outputs(args.output)
+    want = parse_sender(args.sender) if args.sender else None
     check_models(args.models, args.threads, args.role or "leader")
     port = args.port or _default_port(args.format)
     cal = calibration_options(args)
@@ -114,29 +137,35 @@ def cmd_live(args) -> int:
                           models=args.models, threads=args.threads, follow_devices=cal["follow_devices"])
     counters = Counters()
     sink = []  # the session, once its networks are loaded (the port is taken first: a clear error at once)
-    rx = UdpReceiver(SampleAssembler(decoder_for(args.format, args.left, args.right), lambda s: sink[0].put(s),
-                                     counters), port, args.bind)
+    gate = SenderGate(lambda: decoder_for(args.format, args.left, args.right), lambda s: sink[0].put(s), counters,
+                      want=want, follow_s=args.follow_restart)
+    rx = UdpReceiver(gate, port, args.bind)
     rx.open()
     try:
         session = LiveSession(options, counters=counters, describe=f"{args.format} :{rx.port} ")
     except BaseException:
         rx.stop()
         raise
+    session.gate = gate
     sink.append(session)
     rx.start()
     session.start()
     tty = sys.stdout.isatty()
-    print(printable(f"listening on UDP {args.bind}:{rx.port} ({args.format}); "
+    print(printable(f"listening on UDP {args.bind}:{rx.port} ({args.format}) for "
+                    f"{'the sender ' + args.sender if want else 'the first sender with a head'}; "
                     f"{'recording ' + format(args.duration, 'g') + ' s' if args.duration else 'Ctrl-C ends the take'}"),
           flush=True)
     next_log = time.perf_counter() + STATUS_LOG_EVERY_S
-    warned = 0
+    warned = told = 0
 
-    def warn(over_status: bool) -> None:  # the session's warnings not yet printed, each on its own line
-        nonlocal warned
+    def warn(over_status: bool) -> None:  # the session's warnings and the gate's news not yet printed, a line each
+        nonlocal warned, told
         for line in session.warnings[warned:]:
             print(("\r" + " " * 160 + "\r" if over_status else "") + printable(line), flush=True)
             warned += 1
+        for line in gate.events[told:]:
+            print(("\r" + " " * 160 + "\r" if over_status else "") + printable(line), flush=True)
+            told += 1
 
     try:
         try:
@@ -169,8 +198,14 @@ def cmd_live(args) -> int:
                     (out, lambda f: write_npz(f, result.duet.arrays()))], "wb")
     c = result.counters
     take = result.take
+    ignored = gate.ignored()
     print(printable(f"received {c['datagrams']} packets: used {c['used']}, late {c['late']}, malformed "
-                    f"{c['malformed']}, ignored {c['ignored']}; lost on the way {c['lost']} samples"))
+                    f"{c['malformed']}, ignored {c['ignored']}, from other senders {c['others']}; "
+                    f"lost on the way {c['lost']} samples"))
+    print(printable(f"the take is the sender {gate.sender()}'s" + (f"; {ignored_senders_text(ignored)}:"
+                                                                   if ignored else "; no other sender")))
+    for name, packets in ignored:
+        print(printable(f"  ignored sender {name}: {packets} packets"))
     med, p99 = result.latency_ms
     smed, sp99 = result.steady_ms
     print(printable(f"latency from a packet's arrival to its duet frame: median {med:.2f} ms, "
@@ -197,6 +232,13 @@ def parser_live(sub) -> None:
     p.add_argument("--bind", default="0.0.0.0", metavar="ADDR",
                    help="the address to receive on (default 0.0.0.0: every network; 127.0.0.1: this machine only)")
     p.add_argument("--format", choices=("vmc", "osc"), default="vmc", help="the layout (default vmc)")
+    p.add_argument("--sender", type=sender_address, default=None, metavar="ADDR[:PORT]",
+                   help="take only this sender's samples (default: the first sender whose samples carry a head); "
+                        "every other sender is ignored and named with its packet count")
+    p.add_argument("--follow-restart", type=seconds_or_zero, default=FOLLOW_RESTART_S, metavar="S",
+                   help=f"when the sender has been silent S seconds, follow it to another port of its address "
+                        f"(it started again; vmc: with the same head serial); 0: never (default "
+                        f"{FOLLOW_RESTART_S:g})")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="end the take S seconds after the dancer is first seen (default: at Ctrl-C)")
     p.add_argument("--height", type=height_metres, default=None, metavar="H",

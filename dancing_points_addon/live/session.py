@@ -68,6 +68,7 @@ from .receiver import Counters, Sample
 from .rows import CausalResampler, Rows, as_read, as_written
 
 SOURCE_DEVICES = {"vmc": "openxr", "osc": "joints", "xr": "openxr"}
+RATE_WINDOW_S = 1.0  # the input rate is the samples of this last window
 META_WAIT_S = 2.0  # announced metadata not yet come: the calibration waits this long past its window
 # the stream's metadata keys the calibration reads, and the option that overrides each
 CALIBRATION_META = {"devices": "devices", "height_m": "height", "floor_y": "floor_y",
@@ -124,6 +125,13 @@ class LiveResult:
     steady_ms: tuple = (math.nan, math.nan)  # the same from a second after the calibration (caught up)
 
 
+def ignored_senders_text(ignored) -> str:
+    """``ignored 2 other senders (1,234 packets)`` of :meth:`~.receiver.SenderGate.ignored`'s list."""
+    n = len(ignored)
+    return (f"ignored {n} other sender{'s' if n != 1 else ''} "
+            f"({sum(p for _, p in ignored):,} packets)")
+
+
 def _offset_text(v) -> str:
     return ",".join(repr(float(c)) for c in v)
 
@@ -156,7 +164,6 @@ class LiveSession:
         self.warnings = []  # lines for the user (the calibration went on without the announced metadata)
         self.resampler = CausalResampler()
         self._last_dev = [None, None, None]  # per device: (clock time, (position, quat)) last heard
-        self._done = 0  # rows read into frames
         self._catchup = 0  # rows read when the calibration came (not live: no latency counted)
         self._calibrated_t = 0.0  # the take's time of the row the calibration came with
         self._silent = False  # the last row was made of silence
@@ -165,7 +172,8 @@ class LiveSession:
         self.latency = []  # (frame, seconds from a row's arrival to the frame), frames made live (not catching up)
         self.compute_s = []  # seconds of synthesis per frame
         self._recent = deque(maxlen=64)  # (clock time, latency) of the last frames
-        self._arrivals = deque(maxlen=256)  # clock times of the last samples (the input rate)
+        self._arrivals = deque()  # clock times of the samples of the last second (the input rate)
+        self.gate = None  # the receiver's SenderGate (the sender and the senders ignored), when there is one
         self._queue = queue.SimpleQueue()
         self._thread = None
         self._stop = threading.Event()
@@ -204,7 +212,10 @@ class LiveSession:
                 except queue.Empty:
                     self.tick(self.clock())
                     continue
-                self.feed(s)
+                with self._lock:  # this sample and all that came meanwhile, then their frames
+                    self._ingest(s)
+                    self._drain()
+                    self._work(None)
             while True:  # what came before the stop
                 try:
                     self.feed(self._queue.get_nowait())
@@ -263,7 +274,10 @@ class LiveSession:
                 break
 
     def _ingest(self, s: Sample) -> None:
-        self._arrivals.append(s.time)
+        arrivals = self._arrivals
+        arrivals.append(s.time)
+        while arrivals and s.time - arrivals[0] > RATE_WINDOW_S:
+            arrivals.popleft()
         if s.meta:
             self.stream_meta.update(s.meta)
         if not s.poses:
@@ -434,27 +448,34 @@ class LiveSession:
                              f"{', '.join(said)}")
 
     def _work(self, budget_s) -> int:
-        """Read the rows not yet read into frames (the catch-up's for at most
-        ``budget_s`` seconds; None: all); returns how many are left."""
+        """Make the frames the rows so far allow (the catch-up's for at most
+        ``budget_s`` seconds; None: all); returns how many are left. Rows that
+        came faster than the frames are coalesced: each frame reads only the
+        two rows around its time (:meth:`.rows.CausalResampler.due`), so the
+        work a second does not grow with the input rate."""
         c = self.calibration
         rows = self.rows
         if c is None:
             return 0
         t0 = self.clock() if budget_s is not None else 0.0
-        while self._done < rows.n:
-            i = self._done
-            one = Take(rows.time[i:i + 1], rows.pos[i:i + 1], as_read(rows.quat[i:i + 1]), {})
-            with np.errstate(invalid="ignore", divide="ignore"):  # lost devices: NaN in, NaN out
-                read = apply_calibration(one, c, fill_start=False)
-            p, q = read.positions[0], read.quats[0]
-            valid = np.isfinite(p).all(-1) & np.isfinite(q).all(-1)
-            for k, pk, qk, ok in self.resampler.add(rows.time[i], p, q, valid):
-                live = i >= self._catchup and rows.arrival[i] >= self._live_after
-                self._step(k, pk, qk, ok, rows.arrival[i] if live else None)
-            self._done = i + 1
-            if budget_s is not None and self._done < self._catchup and self.clock() - t0 >= budget_s:
-                break
-        return rows.n - self._done
+        ks, idx, a = self.resampler.due(rows.time[:rows.n])
+        if not len(ks):
+            return 0
+        need = np.unique(np.concatenate([idx, idx + 1]))
+        one = Take(rows.time[need], rows.pos[need], as_read(rows.quat[need]), {})
+        with np.errstate(invalid="ignore", divide="ignore"):  # lost devices: NaN in, NaN out
+            read = apply_calibration(one, c, fill_start=False)
+        j = np.searchsorted(need, idx)
+        for m, k in enumerate(ks.tolist()):
+            j0, j1, upper = int(j[m]), int(j[m]) + 1, int(idx[m]) + 1
+            _, pk, qk, ok = self.resampler.interp(k, rows.time[upper - 1], read.positions[j0], read.quats[j0],
+                                                  rows.time[upper], read.positions[j1], read.quats[j1], a[m])
+            live = upper >= self._catchup and rows.arrival[upper] >= self._live_after
+            self._step(k, pk, qk, ok, rows.arrival[upper] if live else None)
+            self.resampler.k = k + 1
+            if budget_s is not None and upper < self._catchup and self.clock() - t0 >= budget_s:
+                return len(ks) - m - 1
+        return 0
 
     def _step(self, k, pos, quat, ok, arrival) -> None:
         t0 = self.clock()
@@ -488,17 +509,26 @@ class LiveSession:
             state = "waiting for the stream's metadata" if waiting else "calibrating"
         else:
             state = "dancing"
+        gate = self.gate
+        sender = gate.sender() if gate is not None else ""
+        ignored = gate.ignored() if gate is not None else []
+        if gate is not None and not sender and self.t_first is None:
+            state = "waiting for a sender with a head" + (f" at {gate.want[0]}" if gate.want else "")
         return {"rate_hz": float(len(recent)), "frames": len(self._frames["lp"]), "state": state,
                 "latency_ms": 1000.0 * float(np.median(lat)) if lat else math.nan,
                 "seconds": 0.0 if self.t_first is None else max(0.0, now - self.t_first), **c,
-                "dropped": c["late"] + c["malformed"] + c["ignored"]}
+                "dropped": c["late"] + c["malformed"] + c["ignored"], "sender": sender, "ignored_senders": ignored}
 
     def status_line(self, now: float | None = None) -> str:
         s = self.status(now)
         lat = "-" if math.isnan(s["latency_ms"]) else f"{s['latency_ms']:.1f} ms"
-        return (f"{self.describe}{s['state']} {s['seconds']:.1f} s | in {s['rate_hz']:.0f} Hz | "
-                f"duet frame {s['frames']} | dropped {s['dropped']} (late {s['late']}, bad {s['malformed']}, "
-                f"other {s['ignored']}) | lost {s['lost']} | latency {lat}")
+        line = (f"{self.describe}{s['state']} {s['seconds']:.1f} s | in {s['rate_hz']:.0f} Hz"
+                f"{' from ' + s['sender'] if s['sender'] else ''} | duet frame {s['frames']} | "
+                f"latency {lat} | dropped {s['dropped']} (late {s['late']}, bad {s['malformed']}, "
+                f"other {s['ignored']}) | lost {s['lost']}")
+        if s["ignored_senders"]:
+            line += f" | {ignored_senders_text(s['ignored_senders'])}"
+        return line
 
     # -- the end -------------------------------------------------------------------------
     def take_meta(self) -> dict:

@@ -30,6 +30,7 @@ from .session import META_WAIT_S, LiveOptions
 # past the receiver's calibration window and its wait for announced metadata, with a second to spare
 META_EVERY_SAMPLE_S = LiveOptions.calibration_s + META_WAIT_S + 1.0
 META_EVERY_S = 0.25
+SPIN_S = 0.0003  # a sample's time is waited for by sleeping up to this before it, then spinning
 
 
 def stream_rows(take: Take, rate: float | None = None):
@@ -72,8 +73,8 @@ def stream_take(take: Take, port: int, host: str = "127.0.0.1", fmt: str = "vmc"
             if duration is not None and rel > duration:
                 break
             wait = start + rel - clock()
-            if wait > 0.002:
-                sleep(wait - 0.001)
+            if wait > SPIN_S:  # sleep, then spin the last fraction of a millisecond (high rates: not a core busy)
+                sleep(wait - SPIN_S)
             while clock() < start + rel:
                 pass
             with_meta = rel < META_EVERY_SAMPLE_S or n % per_meta == 0
