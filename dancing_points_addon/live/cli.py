@@ -70,9 +70,9 @@ def cmd_stream(args) -> int:
     print(printable(f"streaming {args.input} to {args.host}:{port} ({args.format}, {rate}"
                     f"{', looping' if args.loop else ''}); Ctrl-C stops"), flush=True)
     res = stream_take(take, port, args.host, args.format, args.rate, args.loop, args.duration, args.drop,
-                      args.seed, bundle=not args.messages)
+                      args.seed, bundle=not args.messages, source_port=args.source_port)
     line = (f"sent {res['sent']} packets ({res['samples']} samples, {res['dropped']} dropped on purpose) "
-            f"in {res['seconds']:.2f} s to {args.host}:{port}")
+            f"in {res['seconds']:.2f} s to {args.host}:{port} from port {res['source_port']}")
     if res["errors"]:
         line += f"; {res['errors']} sends refused by the system"
     print(printable(line), flush=True)
@@ -96,6 +96,8 @@ def parser_stream(sub) -> None:
     p.add_argument("--rate", type=stream_rate, default=None, metavar="HZ",
                    help=f"send the take resampled to HZ samples a second, at most {MAX_STREAM_RATE_HZ:g} "
                         f"(default: its own rows and times)")
+    p.add_argument("--source-port", type=port_number, default=None, metavar="P",
+                   help="send from this UDP port (default: any free one; the receiver's --sender ADDR:PORT names it)")
     p.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C or --duration")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--drop", type=share, default=0.0, metavar="P",
@@ -212,7 +214,9 @@ def cmd_live(args) -> int:
                     f"99th percentile {p99:.2f} ms; after the calibration's catch-up: median {smed:.2f} ms, "
                     f"99th percentile {sp99:.2f} ms"))
     print(printable(f"{result.duet.calibration.describe()}"))
-    print(printable(f"wrote {csv} ({take.n_frames} rows, {float(take.time[-1]):.2f} s) and {out} "
+    span = float(take.time[-1])
+    print(printable(f"wrote {csv} ({take.n_frames} rows, {span:.2f} s, "
+                    f"{(take.n_frames - 1) / span if span > 0 else 0.0:.0f} samples a second) and {out} "
                     f"({result.duet.n_frames} frames at 30 Hz)"))
     return EXIT_OK
 

@@ -131,7 +131,10 @@ class CausalResampler:
 
 
 class Rows:
-    """The take's rows so far, in arrays that grow by doubling."""
+    """The take's rows so far, in arrays that grow by doubling. A row is kept
+    as it came and made :func:`as_written` when it is first read
+    (:meth:`settle`): a fast sender's rows that no frame reads cost their
+    formatting only once, at the end, not as they come."""
 
     def __init__(self):
         self.n = 0
@@ -139,19 +142,29 @@ class Rows:
         self.pos = np.empty((1024, 3, 3))
         self.quat = np.empty((1024, 3, 4))
         self.arrival = np.empty(1024)  # this machine's clock when the row was made (for latency)
+        self.raw = np.zeros(1024, dtype=bool)  # not yet as written
 
     def append(self, t, pos, quat, arrival):
         if self.n == len(self.time):
             m = 2 * self.n
-            for name in ("time", "pos", "quat", "arrival"):
+            for name in ("time", "pos", "quat", "arrival", "raw"):
                 old = getattr(self, name)
-                new = np.empty((m,) + old.shape[1:])
+                new = np.zeros((m,) + old.shape[1:], dtype=old.dtype)
                 new[:self.n] = old[:self.n]
                 setattr(self, name, new)
         self.time[self.n], self.pos[self.n], self.quat[self.n], self.arrival[self.n] = t, pos, quat, arrival
+        self.raw[self.n] = True
         self.n += 1
+
+    def settle(self, rows=None) -> None:
+        """Make the rows (indices; None: all so far) as written (:func:`as_written`), once each."""
+        idx = np.flatnonzero(self.raw[:self.n]) if rows is None else np.asarray(rows)[self.raw[rows]]
+        for i in idx.tolist():
+            self.pos[i], self.quat[i] = as_written(self.pos[i], self.quat[i])
+        self.raw[idx] = False
 
     def take(self, n=None, meta=None) -> Take:
         """The first ``n`` rows as a take file reads them back."""
         n = self.n if n is None else n
+        self.settle(np.arange(n))
         return Take(self.time[:n].copy(), self.pos[:n].copy(), as_read(self.quat[:n]), dict(meta or {}))

@@ -65,7 +65,7 @@ from ..resample import NET_FPS, output_offsets
 from . import ROLES
 from .protocol import META_ANNOUNCE
 from .receiver import Counters, Sample
-from .rows import CausalResampler, Rows, as_read, as_written
+from .rows import CausalResampler, Rows, as_read
 
 SOURCE_DEVICES = {"vmc": "openxr", "osc": "joints", "xr": "openxr"}
 RATE_WINDOW_S = 1.0  # the input rate is the samples of this last window
@@ -321,8 +321,7 @@ class LiveSession:
             if datagrams:
                 self.counters.add(late=datagrams, used=-datagrams)
             return
-        pos, quat = as_written(pos, quat)
-        rows.append(t, pos, quat, t_abs)
+        rows.append(t, pos, quat, t_abs)  # (as written when it is read: Rows.settle)
         self._last_abs = t_abs
         self._silent = silent and not valid.any()
         if datagrams or not silent:
@@ -462,6 +461,7 @@ class LiveSession:
         if not len(ks):
             return 0
         need = np.unique(np.concatenate([idx, idx + 1]))
+        rows.settle(need)
         one = Take(rows.time[need], rows.pos[need], as_read(rows.quat[need]), {})
         with np.errstate(invalid="ignore", divide="ignore"):  # lost devices: NaN in, NaN out
             read = apply_calibration(one, c, fill_start=False)
@@ -562,6 +562,7 @@ class LiveSession:
                 self._calibrate(n)
             self._warn_role()  # (a role that came after the calibration)
             self._work(None)
+            rows.settle()
             times, pos, quat = rows.time[:n], rows.pos[:n], rows.quat[:n]
             with np.errstate(invalid="ignore", divide="ignore"):
                 read = apply_calibration(Take(times, pos, as_read(quat), {}), self.calibration, fill_start=False)
@@ -607,6 +608,7 @@ class LiveSession:
                         meta[key] = v
                 meta = self._finish_meta(meta, offsets_for(meta, o.head_offset, o.hand_offset))
             rows = self.rows
+            rows.settle()
             return Take(rows.time[:n].copy(), rows.pos[:n].copy(), rows.quat[:n].copy(), meta)
 
     def _latency_stats(self, after_s):
