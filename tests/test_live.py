@@ -963,8 +963,8 @@ def test_the_gate_follows_a_sender_that_starts_again(take):
 def test_the_input_rate_is_the_samples_of_the_last_second(synth):
     s = LiveSession(LiveOptions(source="osc", models=MODELS), synth)
     pose = {d: (np.array([0.0, 1.5 if d == 0 else 1.0, 0.2 * d]), FACING_Z) for d in range(3)}
-    for i in range(2000):  # 2 s at 1,000 Hz
-        s._ingest(Sample(10.0 + i / 1000.0, pose))
+    for i in range(2000):  # 2 s at 1,000 Hz, counted as they come (not when the loop reads them)
+        s.put(Sample(10.0 + i / 1000.0, pose))
     assert s.status(now=10.0 + 1999 / 1000.0)["rate_hz"] == pytest.approx(1000, abs=2)
     assert len(s._arrivals) <= 1002
 

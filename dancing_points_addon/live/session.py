@@ -196,7 +196,12 @@ class LiveSession:
 
     # -- input -------------------------------------------------------------------
     def put(self, sample: Sample) -> None:
-        """From any thread: one sample for the loop."""
+        """From one thread (the receiver's, or the caller's): one sample for the
+        loop; counted at once for the input rate, read or not."""
+        arrivals = self._arrivals
+        arrivals.append(sample.time)
+        while arrivals and sample.time - arrivals[0] > RATE_WINDOW_S:
+            arrivals.popleft()
         self._queue.put(sample)
 
     # -- the thread ------------------------------------------------------------------
@@ -274,10 +279,6 @@ class LiveSession:
                 break
 
     def _ingest(self, s: Sample) -> None:
-        arrivals = self._arrivals
-        arrivals.append(s.time)
-        while arrivals and s.time - arrivals[0] > RATE_WINDOW_S:
-            arrivals.popleft()
         if s.meta:
             self.stream_meta.update(s.meta)
         if not s.poses:
@@ -496,7 +497,8 @@ class LiveSession:
 
     # -- status ------------------------------------------------------------------------
     def status(self, now: float | None = None) -> dict:
-        """Input rate (samples a second over the last second), frames made, the
+        """Input rate (samples received a second over the last second, whether
+        the loop has read them yet or not), frames made, the
         counters, the latency (ms, median of the last frames), the state."""
         now = self.clock() if now is None else now
         recent = [t for t in list(self._arrivals) if now - t <= 1.0]
