@@ -2,7 +2,8 @@
 machine and with one core kept busy by another process; prints, per run, the
 latency from a packet's arrival to its duet frame after the first seconds
 (median, 99th percentile), samples lost, the input rate the status showed, the
-live process's memory (resident, after the first seconds and at the end) and,
+live process's memory while it records (resident, after 5 s and at the end;
+the take's rows grow it by about 185 bytes a sample) and,
 with ``--check``, the largest difference between the live duet and
 ``synthesize`` of the kept take.
 
@@ -68,11 +69,12 @@ def run(rate: float, seconds: float, busy: bool, check: bool, work: Path) -> dic
         sender = subprocess.Popen([PY, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--port", str(port),
                                    "--rate", f"{rate:g}", "--loop", "--duration", str(seconds + 3)], cwd=ROOT, env=env,
                                   stdout=subprocess.DEVNULL)
-        rss = []
+        rss = []  # (seconds since the stream started, resident MB) while recording (not the writing at the end)
         t0 = time.perf_counter()
         while live.poll() is None and time.perf_counter() - t0 < seconds + 60:
             time.sleep(1.0)
-            rss.append((time.perf_counter() - t0, _rss_mb(live.pid)))
+            if time.perf_counter() - t0 < seconds:
+                rss.append((time.perf_counter() - t0, _rss_mb(live.pid)))
         stdout, stderr = live.communicate(timeout=300)
         sender.wait(timeout=30)
     finally:
@@ -87,7 +89,7 @@ def run(rate: float, seconds: float, busy: bool, check: bool, work: Path) -> dic
     rss = [m for t, m in rss if np.isfinite(m)]
     res = {"rate": rate, "load": "busy" if busy else "idle", "p50_ms": med, "p99_ms": p99,
            "lost": int(RECEIVED.search(stdout).group(1)), "rows": int(rows), "seconds": float(span),
-           "status_hz": rates[1:] or rates, "rss_mb": (rss[min(4, len(rss) - 1)], rss[-1]) if rss else None}
+           "status_hz": rates[1:] or rates, "rss_mb": (rss[min(4, len(rss) - 1)], rss[-1]) if rss else (0, 0)}
     if check:
         off = work / "offline.npz"
         subprocess.run([PY, "-m", "dancing_points_addon", "synthesize", str(out.with_suffix(".csv")), "-o", str(off)],
@@ -112,7 +114,9 @@ def main() -> None:
                 extra = f", live duet vs synthesize {r['duet_vs_synthesize']:g}" if "duet_vs_synthesize" in r else ""
                 print(f"{r['rate']:6g} Hz {r['load']}: latency after the first seconds median {r['p50_ms']:.1f} ms, "
                       f"p99 {r['p99_ms']:.1f} ms; lost {r['lost']}; {r['rows']} rows in {r['seconds']:.1f} s; status "
-                      f"input rate {r['status_hz']} Hz; memory {r['rss_mb'][0]:.0f} -> {r['rss_mb'][1]:.0f} MB"
+                      f"input rate {r['status_hz']} Hz; memory while recording {r['rss_mb'][0]:.0f} MB at 5 s, "
+                      f"{r['rss_mb'][1]:.0f} MB at the end (the take's rows: "
+                      f"{r['rows'] * 185 / 2**20:.0f} MB)"
                       f"{extra}; load average {os.getloadavg()[0]:.2f}", flush=True)
 
 

@@ -442,6 +442,65 @@ def _malformed(rng, good: bytes) -> bytes:
     return m.build().dgram
 
 
+def _python_osc_datagrams(fmt, frame, clock, positions, quats, meta=None, bundle=True, announce=None):
+    """What ``python-osc``'s builders make of the messages :func:`P.sample_datagrams` writes."""
+    from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+    from pythonosc.osc_message_builder import OscMessageBuilder
+
+    out = []
+    for d in P.sample_datagrams(fmt, frame, clock, positions, quats, meta, bundle, announce):
+        msgs = []
+        for address, args in P._python_osc_messages(d):
+            m = OscMessageBuilder(address=address)
+            for a in args:
+                m.add_arg(a, "s" if isinstance(a, str) else "i" if isinstance(a, int) else
+                          "f" if fmt == "vmc" else "d")
+            msgs.append(m.build())
+        if d.startswith(b"#bundle"):
+            b = OscBundleBuilder(IMMEDIATELY)
+            for m in msgs:
+                b.add_content(m)
+            out.append(b.build().dgram)
+        else:
+            out.append(msgs[0].dgram)
+    return out
+
+
+def test_the_fast_osc_reader_and_writer_are_python_oscs(take):
+    """The datagrams ``stream`` writes are byte for byte what ``python-osc``'s
+    builders write; the fast reader reads every datagram (good ones, and
+    4,000 malformed of every kind) as ``python-osc`` does, or leaves it to it."""
+    rng = random.Random(5)
+    fast = 0
+    for fmt in ("vmc", "osc"):
+        for i in range(0, 300, 7):
+            pos, quats = take.positions[i].copy(), take.quats[i].copy()
+            if i % 3 == 0:
+                pos[i % 3 + 0] = np.nan
+            meta = {"devices": "joints", "height_m": "1.7"} if i % 2 else None
+            for bundle in (True, False):
+                args = (fmt, i, i / 72.0, pos, quats, meta, bundle, ("devices", "height_m"))
+                assert P.sample_datagrams(*args) == _python_osc_datagrams(*args)
+        good = P.sample_datagrams(fmt, 3, 0.5, take.positions[3], take.quats[3], {"devices": "joints"})[0]
+        for d in [good] + [_malformed(rng, good) for _ in range(2000)]:
+            try:
+                want = P._python_osc_messages(d)
+            except P.MalformedPacket:
+                want = "malformed"
+            try:
+                got = P.osc_messages(d)
+            except P.MalformedPacket:
+                got = "malformed"
+            assert repr(got) == repr(want), d  # (repr: NaN arguments alike)
+            out = []
+            try:
+                P._fast_messages(d, out)
+                fast += 1
+            except P._Unusual:
+                pass
+    assert fast > 200  # (the fast path was taken, not only python-osc's)
+
+
 def test_bundle_with_a_negative_element_size_is_malformed_not_a_stall():
     """python-osc 1.10.2 loops for ever on a bundle element of size -4; the
     framing is checked first."""
@@ -540,6 +599,13 @@ def test_receiver_stops_cleanly_and_a_taken_port_is_one_clear_error():
     again.start()  # the port is free again: the socket was closed
     again.stop()
     assert not _live_threads()
+
+
+def test_live_refuses_a_sender_that_is_no_address(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "dancing_points_addon", "live", "--sender", "studio-pc:99999", "-o",
+                        str(tmp_path / "out.npz")], cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "is not ADDR or ADDR:PORT" in r.stderr, r.stderr
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_live_command_port_in_use(tmp_path):
