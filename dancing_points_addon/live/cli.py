@@ -153,10 +153,6 @@ def cmd_live(args) -> int:
     rx.start()
     session.start()
     tty = sys.stdout.isatty()
-    print(printable(f"listening on UDP {args.bind}:{rx.port} ({args.format}) for "
-                    f"{'the sender ' + args.sender if want else 'the first sender with a head'}; "
-                    f"{'recording ' + format(args.duration, 'g') + ' s' if args.duration else 'Ctrl-C ends the take'}"),
-          flush=True)
     next_log = time.perf_counter() + STATUS_LOG_EVERY_S
     warned = told = 0
 
@@ -171,6 +167,11 @@ def cmd_live(args) -> int:
 
     try:
         try:
+            # (within the try: a signal that comes once this line is out ends the take as Ctrl-C does)
+            ends = f"recording {args.duration:g} s" if args.duration else "Ctrl-C ends the take"
+            print(printable(f"listening on UDP {args.bind}:{rx.port} ({args.format}) for "
+                            f"{'the sender ' + args.sender if want else 'the first sender with a head'}; {ends}"),
+                  flush=True)
             while True:
                 time.sleep(0.05 if args.duration else STATUS_EVERY_S)
                 for failed in (rx, session):
