@@ -36,11 +36,15 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
    that arrive meanwhile are caught up as those before the calibration are (no
    latency counted). A role given that the stream contradicts wins, with a
    warning.
-4. **frames**: each row is read as the calibration says, as
-   :func:`~..calibration.apply_calibration` reads a take, then resampled
-   causally to 30 Hz (:class:`.rows.CausalResampler`: the frames of
-   :func:`~..resample.resample_take`, each made once the row after it has
-   come) and synthesised (:meth:`~..runtime.Synthesizer.step_points`).
+4. **frames**: resampled causally to 30 Hz (:class:`.rows.CausalResampler`:
+   the frames of :func:`~..resample.resample_take`, each made once the row
+   after it has come) and synthesised
+   (:meth:`~..runtime.Synthesizer.step_points`). Only the two rows around a
+   frame's time are read for it, as the calibration says (as
+   :func:`~..calibration.apply_calibration` reads a take): rows that come
+   faster than the frames are coalesced, so a 1,000 Hz sender costs the loop
+   its rows, not 1,000 readings a second. The loop's thread takes every
+   sample that came while it made a frame at once, then makes the frames.
 
 :meth:`LiveSession.finish` ends it: trailing rows of lost devices are dropped
 (with the frames made from them) and it returns the take and the duet
