@@ -1134,3 +1134,29 @@ def test_a_fast_sender_is_coalesced_and_keeps_up(tmp_path):
     # every sample read one by one, this take fell seconds behind)
     assert smed < 2 * FRAME_MS and sp99 < 6 * FRAME_MS
     assert _offline_difference(out, tmp_path)[0] <= TOL
+
+
+def test_live_follows_its_sender_when_it_starts_again(tmp_path):
+    """The dancer's sender stops, is silent 2.5 s and starts again from another
+    port: ``live`` follows it (default ``--follow-restart 2``) and says so;
+    the take has both parts, nothing lost, and its duet is ``synthesize``'s."""
+    out = tmp_path / "again.npz"
+    live, port = _start_live("--format", "osc", "--height", "1.7", "--floor-y", "0", "-o", out)
+    try:
+        first = _stream_proc(SAMPLE, port, "--format", "osc", "--rate", 72, "--duration", 2)
+        first_out = first.communicate(timeout=60)[0]
+        time.sleep(2.5)
+        sender, stdout, _ = _stream_into(live, port, SAMPLE, "--format", "osc", "--rate", 72, "--duration", 2)
+    finally:
+        if live.poll() is None:
+            live.kill()
+    p1, p2 = (int(_FROM.search(o).group(1)) for o in (first_out, sender.stdout))
+    assert p1 != p2
+    assert f"locked onto the sender 127.0.0.1:{p1}" in stdout
+    assert f"followed the sender to 127.0.0.1:{p2} (it started again: 127.0.0.1:{p1} silent" in stdout
+    assert "; no other sender" in stdout
+    received, used, late, malformed, ignored, others, lost = map(int, _RECEIVED.search(stdout).groups())
+    assert others == lost == late == 0 and used == received
+    kept = read_take(out.with_suffix(".csv"))
+    assert 6.0 < kept.time[-1] < 7.5 and kept.n_frames >= 2 * 144
+    assert _offline_difference(out, tmp_path)[0] <= TOL
