@@ -36,6 +36,7 @@ from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon.errors import UserError, error_message
 from ..dancing_points_addon.formats.limits import FLOOR_RANGE_M, HEIGHT_RANGE_M
 from ..dancing_points_addon.live import OSC_PORT, ROLES, VMC_PORT
+from ..dancing_points_addon.live.receiver import FOLLOW_RESTART_S
 from ..dancing_points_addon.live.xr import read_xr_state, xr_to_motion
 from . import bake
 from .song import SongPlayer, scene_song
@@ -84,6 +85,13 @@ class DP_LiveSettings(bpy.types.PropertyGroup):
                            soft_max=0.5, unit='LENGTH', precision=3,
                            description="Height of the real floor in the stream's frame, within ±{:g} m".format(
                                FLOOR_RANGE_M))
+    sender: StringProperty(name="Sender", default="",
+                           description="Take only this sender's samples, ADDR or ADDR:PORT (empty: the first sender "
+                                       "whose samples carry a head); every other sender is ignored and counted")
+    follow_restart: FloatProperty(name="Follow Restart", default=FOLLOW_RESTART_S, min=0.0, soft_max=10.0,
+                                  unit='TIME_ABSOLUTE', precision=1,
+                                  description="When the sender has been silent this long, follow it to another "
+                                              "port of its address (it started again); 0: never")
     left_serial: StringProperty(name="Left Hand", default="",
                                 description="VMC: the left hand's serial (empty: guessed)")
     right_serial: StringProperty(name="Right Hand", default="",
@@ -170,7 +178,7 @@ def start(context, settings):
         raise UserError("a live session is already running: stop it first")
     _LAST_ERROR = ""
     from ..dancing_points_addon.live.protocol import decoder_for
-    from ..dancing_points_addon.live.receiver import Counters, SampleAssembler, UdpReceiver
+    from ..dancing_points_addon.live.receiver import Counters, SenderGate, UdpReceiver, parse_sender
     from ..dancing_points_addon.live.session import LiveSession
     from .synthesize import _preferences, make_synthesizer, model_dir_choice
 
@@ -178,20 +186,22 @@ def start(context, settings):
     threads = int(getattr(prefs, "onnx_threads", 1)) if prefs else 1
     options = _options(settings, threads, model_dir_choice(context))
     counters = Counters()
-    receiver = None
+    receiver = gate = None
     sink = []
     if settings.source != 'XR':
         fmt = settings.source.lower()
-        receiver = UdpReceiver(SampleAssembler(decoder_for(fmt, settings.left_serial or None,
-                                                           settings.right_serial or None),
-                                               lambda s: sink[0].put(s), counters),
-                               settings.port, settings.address or "0.0.0.0")
+        want = parse_sender(settings.sender) if settings.sender.strip() else None
+        left, right = settings.left_serial or None, settings.right_serial or None
+        gate = SenderGate(lambda: decoder_for(fmt, left, right), lambda s: sink[0].put(s), counters, want=want,
+                          follow_s=settings.follow_restart)
+        receiver = UdpReceiver(gate, settings.port, settings.address or "0.0.0.0")
         receiver.open()  # the port first: a clear error before anything is built
     run = None
     try:
         synth = make_synthesizer(options.synthesis_options())
         describe = "{:s} :{:d} ".format(settings.source.lower(), receiver.port) if receiver else "blender vr "
         session = LiveSession(options, synth, counters, describe=describe)
+        session.gate = gate
         run = LiveRun(session, receiver, settings.source)
         _build_rigs(context, run, synth)
     except BaseException:
@@ -335,6 +345,8 @@ def status(run=None):
     st["tick_ms"] = 1000.0 * float(np.median(run.tick_s[-60:])) if run.tick_s else float("nan")
     st["error"] = error_message(run.error) if run.error is not None else ""
     st["warnings"] = list(run.session.warnings)  # e.g. the stream's role not the one set, metadata lost
+    gate = run.session.gate
+    st["events"] = list(gate.events) if gate is not None else []  # the sender locked onto, followed
     return st
 
 
@@ -396,7 +408,9 @@ def stop(context=None, keep=True, collection=True, bake_duet=None, folder=None):
         result.take.meta["audio"] = song_reference(run.song.path, path)  # the song as it played
         result.take.meta["audio_offset_s"] = "{:.6f}".format(run.song.offset_at(run.session.t_first))
     write_take(path, result.take)
-    out = {"csv": path, "take": None, "duet": None, "result": result, "warnings": list(run.session.warnings)}
+    gate = run.session.gate
+    out = {"csv": path, "take": None, "duet": None, "result": result, "warnings": list(run.session.warnings),
+           "sender": gate.sender() if gate is not None else "", "ignored": gate.ignored() if gate is not None else []}
     if not collection:
         return out
     context = context or bpy.context
@@ -463,7 +477,9 @@ class DANCING_POINTS_OT_live_start(bpy.types.Operator):
             return {'CANCELLED'}
         start_timer(run)
         where = "Blender's VR session" if settings.source == 'XR' else \
-            "UDP {:s}:{:d} ({:s})".format(settings.address, run.receiver.port, settings.source)
+            "UDP {:s}:{:d} ({:s}), {:s}".format(settings.address, run.receiver.port, settings.source,
+                                                "the sender " + settings.sender.strip() if settings.sender.strip()
+                                                else "the first sender with a head")
         self.report({'INFO'}, "Live: receiving from " + where)
         return {'FINISHED'}
 
@@ -494,8 +510,10 @@ class DANCING_POINTS_OT_live_stop(bpy.types.Operator):
             r = out["result"]
             for line in out["warnings"]:
                 self.report({'WARNING'}, line)
-            self.report({'INFO'}, "Live stopped: take {:s} ({:d} rows){:s}".format(
-                out["csv"], r.take.n_frames, ", duet baked" if out["duet"] is not None else ""))
+            ignored = "".join("; ignored the sender {:s} ({:d} packets)".format(*i) for i in out["ignored"])
+            self.report({'INFO'}, "Live stopped: take {:s} ({:d} rows{:s}){:s}{:s}".format(
+                out["csv"], r.take.n_frames, ", from " + out["sender"] if out["sender"] else "",
+                ", duet baked" if out["duet"] is not None else "", ignored))
         return {'FINISHED'}
 
 

@@ -7,6 +7,8 @@ import bpy
 
 from .common import SubPanel, split_layout
 
+MAX_NAMED = 4  # ignored senders named in the panel (the rest counted)
+
 
 class VIEW3D_PT_dancing_points_live(SubPanel, bpy.types.Panel):
     bl_idname = "VIEW3D_PT_dancing_points_live"
@@ -26,6 +28,8 @@ class VIEW3D_PT_dancing_points_live(SubPanel, bpy.types.Panel):
         if settings.source != 'XR':
             col.prop(settings, "port")
             col.prop(settings, "address")
+            col.prop(settings, "sender")
+            col.prop(settings, "follow_restart")
         if settings.source == 'VMC':
             col.prop(settings, "left_serial")
             col.prop(settings, "right_serial")
@@ -46,11 +50,23 @@ class VIEW3D_PT_dancing_points_live(SubPanel, bpy.types.Panel):
         st = live.status(run)
         box = layout.box().column(align=True)
         box.label(text="{:s}, {:.1f} s".format(st["state"].capitalize(), st["seconds"]))
-        box.label(text="Input {:.0f} Hz, duet frame {:d}".format(st["rate_hz"], st["frames"]))
+        box.label(text="Input {:.0f} Hz{:s}, duet frame {:d}".format(
+            st["rate_hz"], " from " + st["sender"] if st["sender"] else "", st["frames"]))
         box.label(text="Dropped {:d} (late {:d}, bad {:d}), lost {:d}".format(
             st["dropped"], st["late"], st["malformed"], st["lost"]))
         posed = st["posed_ms"]
         box.label(text="Latency {:s}".format("-" if math.isnan(posed) else "{:.1f} ms".format(posed)))
+        ignored = st["ignored_senders"]
+        if ignored:
+            box.label(text="Ignored {:d} other sender{:s}:".format(len(ignored), "s" if len(ignored) > 1 else ""),
+                      icon='INFO')
+            for name, packets in ignored[:MAX_NAMED]:
+                box.label(text="  {:s}: {:d} packets".format(name, packets))
+            if len(ignored) > MAX_NAMED:
+                box.label(text="  and {:d} more ({:d} packets)".format(
+                    len(ignored) - MAX_NAMED, sum(p for _, p in ignored[MAX_NAMED:])))
+        for line in st["events"][-1:]:  # the sender locked onto (or followed)
+            box.label(text=line)
         if st["error"]:
             box.label(text=st["error"], icon='ERROR')
         for line in st["warnings"]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import glob
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -453,3 +454,59 @@ def test_the_sessions_warnings_are_shown(live, tmp_path, capfd):
     assert bpy.ops.dancing_points.live_stop(keep=True) == {'FINISHED'}
     assert said in capfd.readouterr().out
     _no_leftovers(live)
+
+
+def test_other_senders_are_ignored_and_named(live, tmp_path):
+    """Live (VMC) with two senders to its port: the dancer (the sample take,
+    72 Hz, 3 s; the sender chosen in *Sender* by its address and port) and the
+    same take 1 m aside at 500 Hz, started first. The take kept is the
+    dancer's, row for row; the other sender is named with its packets in the
+    panel and in Stop's result; the duet is ``synthesize``'s of the take."""
+    other = tmp_path / "other.csv"
+    tk = read_take(SAMPLE)
+    aside = Take(tk.time, tk.positions + np.array([1.0, 0.0, 0.0]), tk.quats, dict(tk.meta))
+    other.write_text(take_to_text(aside))
+    port, source = _free_port(), _free_port()
+    s = _settings('VMC', port)
+    s.sender = "127.0.0.1:{:d}".format(source)
+    live.start(bpy.context, s)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    stream = [sys.executable, "-m", "dancing_points_addon", "stream", "--port", str(port)]
+    procs = [subprocess.Popen(stream + [str(other), "--rate", "500", "--duration", "4"], cwd=ROOT, env=env,
+                              stdout=subprocess.PIPE, text=True)]
+    time.sleep(0.3)
+    procs.append(subprocess.Popen(stream + [str(SAMPLE), "--rate", "72", "--duration", "3", "--source-port",
+                                            str(source)], cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True))
+    try:
+        while any(p.poll() is None for p in procs):
+            live.tick()
+            time.sleep(1.0 / 120.0)
+        for _ in range(30):
+            live.tick()
+            time.sleep(0.01)
+        st = live.status()
+        log = []
+        panel = bpy.types.Panel.bl_rna_get_subclass_py("VIEW3D_PT_dancing_points_live")
+        panel.draw(SimpleNamespace(layout=_Layout(log)), bpy.context)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    outs = [p.communicate()[0] for p in procs]
+    other_sent, other_port = (int(v) for v in re.search(r"sent (\d+) packets.* from port (\d+)", outs[0]).groups())
+    assert st["sender"] == "127.0.0.1:{:d}".format(source)
+    assert st["ignored_senders"] == [("127.0.0.1:{:d}".format(other_port), other_sent)]
+    assert ("label", "  127.0.0.1:{:d}: {:d} packets".format(other_port, other_sent)) in log
+    assert any(k == "label" and t.startswith("Input") and "from 127.0.0.1:{:d}".format(source) in t for k, t in log)
+    assert st["lost"] == st["late"] == 0 and st["others"] == other_sent
+    out = live.stop(bpy.context, folder=str(tmp_path), bake_duet=False)
+    _no_leftovers(live, port)
+    assert out["ignored"] == st["ignored_senders"] and out["sender"] == st["sender"]
+    kept = read_take(out["csv"])
+    _, pos, _ = stream_rows(tk, 72.0)
+    assert kept.n_frames >= 72 * 3 - 1
+    d = np.abs(kept.positions - pos[:kept.n_frames]).max()
+    print(f"\nBlender, two senders: kept {kept.n_frames} rows, largest difference from the dancer's {d:g} m; ignored "
+          f"{st['ignored_senders']}")
+    assert d < 1e-4
+    assert _max_diff(out["result"].duet, _offline(out["csv"])) <= 1e-9

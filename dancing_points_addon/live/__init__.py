@@ -3,7 +3,8 @@ they come, the take kept.
 
 - :mod:`.protocol`: the two network layouts (the VMC protocol, this project's
   own OSC layout), read and written with ``python-osc``;
-- :mod:`.receiver`: the UDP receiver thread, samples and the datagram counters;
+- :mod:`.receiver`: the UDP receiver thread, samples, the datagram counters
+  and the sender gate (one dancer, one sender: the others counted, not read);
 - :mod:`.xr`: Blender's own VR session's poses in motion space (numpy only;
   the Blender side reads ``xr_session_state``);
 - :mod:`.session`: the live loop (rows, the start, calibration, causal 30 Hz

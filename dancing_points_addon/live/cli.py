@@ -8,6 +8,7 @@ SPEC §4; what ``synthesize OUT.csv`` gives) together: both or neither.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -17,9 +18,30 @@ from ..argtypes import (CLI_SIGNALS, EXIT_OK, add_audio_arguments, add_calibrati
 from ..errors import InputError, UserError
 from ..formats.files import check_output_path
 from . import OSC_PORT, VMC_PORT
+from .receiver import FOLLOW_RESTART_S, parse_sender
 
 STATUS_EVERY_S = 0.5  # on a terminal the status line is redrawn this often
 STATUS_LOG_EVERY_S = 5.0  # elsewhere a status line is printed this often
+
+
+def seconds_or_zero(text: str) -> float:
+    """A number of seconds, 0 or more."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = -1.0
+    if not (math.isfinite(v) and v >= 0.0):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds, 0 or more, got {text!r}")
+    return v
+
+
+def sender_address(text: str) -> str:
+    """``ADDR[:PORT]``, checked (:func:`.receiver.parse_sender`)."""
+    try:
+        parse_sender(text)
+    except UserError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text.strip()
 
 
 def _default_port(fmt: str) -> int:
@@ -48,9 +70,9 @@ def cmd_stream(args) -> int:
     print(printable(f"streaming {args.input} to {args.host}:{port} ({args.format}, {rate}"
                     f"{', looping' if args.loop else ''}); Ctrl-C stops"), flush=True)
     res = stream_take(take, port, args.host, args.format, args.rate, args.loop, args.duration, args.drop,
-                      args.seed, bundle=not args.messages)
+                      args.seed, bundle=not args.messages, source_port=args.source_port)
     line = (f"sent {res['sent']} packets ({res['samples']} samples, {res['dropped']} dropped on purpose) "
-            f"in {res['seconds']:.2f} s to {args.host}:{port}")
+            f"in {res['seconds']:.2f} s to {args.host}:{port} from port {res['source_port']}")
     if res["errors"]:
         line += f"; {res['errors']} sends refused by the system"
     print(printable(line), flush=True)
@@ -74,6 +96,8 @@ def parser_stream(sub) -> None:
     p.add_argument("--rate", type=stream_rate, default=None, metavar="HZ",
                    help=f"send the take resampled to HZ samples a second, at most {MAX_STREAM_RATE_HZ:g} "
                         f"(default: its own rows and times)")
+    p.add_argument("--source-port", type=port_number, default=None, metavar="P",
+                   help="send from this UDP port (default: any free one; the receiver's --sender ADDR:PORT names it)")
     p.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C or --duration")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--drop", type=share, default=0.0, metavar="P",
@@ -101,48 +125,57 @@ def cmd_live(args) -> int:
     from ..formats.take import take_to_text
     from ..nets import check_models
     from .protocol import decoder_for
-    from .receiver import Counters, SampleAssembler, UdpReceiver
-    from .session import LiveOptions, LiveSession
+    from .receiver import Counters, SenderGate, UdpReceiver
+    from .session import LiveOptions, LiveSession, ignored_senders_text
 
     out, csv = _outputs(args.output)
     if args.audio:  # the song the dancer dances to: read once, before anything listens
         from ..audio import read_song
         read_song(args.audio)
+    want = parse_sender(args.sender) if args.sender else None
     check_models(args.models, args.threads, args.role or "leader")
     port = args.port or _default_port(args.format)
     cal = calibration_options(args)
     options = LiveOptions(source=args.format, height=args.height, floor_y=cal["floor_y"], devices=cal["devices"],
                           head_offset=cal["head_offset"], hand_offset=cal["hand_offset"],
+                          head_turn=cal["head_turn"], hand_turn=cal["hand_turn"],
                           role=args.role,  # None: the stream's role, else leader (the session checks both)
                           models=args.models, threads=args.threads, follow_devices=cal["follow_devices"])
     counters = Counters()
     sink = []  # the session, once its networks are loaded (the port is taken first: a clear error at once)
-    rx = UdpReceiver(SampleAssembler(decoder_for(args.format, args.left, args.right), lambda s: sink[0].put(s),
-                                     counters), port, args.bind)
+    gate = SenderGate(lambda: decoder_for(args.format, args.left, args.right), lambda s: sink[0].put(s), counters,
+                      want=want, follow_s=args.follow_restart)
+    rx = UdpReceiver(gate, port, args.bind)
     rx.open()
     try:
         session = LiveSession(options, counters=counters, describe=f"{args.format} :{rx.port} ")
     except BaseException:
         rx.stop()
         raise
+    session.gate = gate
     sink.append(session)
     rx.start()
     session.start()
     tty = sys.stdout.isatty()
-    print(printable(f"listening on UDP {args.bind}:{rx.port} ({args.format}); "
-                    f"{'recording ' + format(args.duration, 'g') + ' s' if args.duration else 'Ctrl-C ends the take'}"),
-          flush=True)
     next_log = time.perf_counter() + STATUS_LOG_EVERY_S
-    warned = 0
+    warned = told = 0
 
-    def warn(over_status: bool) -> None:  # the session's warnings not yet printed, each on its own line
-        nonlocal warned
+    def warn(over_status: bool) -> None:  # the session's warnings and the gate's news not yet printed, a line each
+        nonlocal warned, told
         for line in session.warnings[warned:]:
             print(("\r" + " " * 160 + "\r" if over_status else "") + printable(line), flush=True)
             warned += 1
+        for line in gate.events[told:]:
+            print(("\r" + " " * 160 + "\r" if over_status else "") + printable(line), flush=True)
+            told += 1
 
     try:
         try:
+            # (within the try: a signal that comes once this line is out ends the take as Ctrl-C does)
+            ends = f"recording {args.duration:g} s" if args.duration else "Ctrl-C ends the take"
+            print(printable(f"listening on UDP {args.bind}:{rx.port} ({args.format}) for "
+                            f"{'the sender ' + args.sender if want else 'the first sender with a head'}; {ends}"),
+                  flush=True)
             while True:
                 time.sleep(0.05 if args.duration else STATUS_EVERY_S)
                 for failed in (rx, session):
@@ -175,15 +208,23 @@ def cmd_live(args) -> int:
                     (out, lambda f: write_npz(f, result.duet.arrays()))], "wb")
     c = result.counters
     take = result.take
+    ignored = gate.ignored()
     print(printable(f"received {c['datagrams']} packets: used {c['used']}, late {c['late']}, malformed "
-                    f"{c['malformed']}, ignored {c['ignored']}; lost on the way {c['lost']} samples"))
+                    f"{c['malformed']}, ignored {c['ignored']}, from other senders {c['others']}; "
+                    f"lost on the way {c['lost']} samples"))
+    print(printable(f"the take is the sender {gate.sender()}'s" + (f"; {ignored_senders_text(ignored)}:"
+                                                                   if ignored else "; no other sender")))
+    for name, packets in ignored:
+        print(printable(f"  ignored sender {name}: {packets} packets"))
     med, p99 = result.latency_ms
     smed, sp99 = result.steady_ms
     print(printable(f"latency from a packet's arrival to its duet frame: median {med:.2f} ms, "
                     f"99th percentile {p99:.2f} ms; after the calibration's catch-up: median {smed:.2f} ms, "
                     f"99th percentile {sp99:.2f} ms"))
     print(printable(f"{result.duet.calibration.describe()}"))
-    print(printable(f"wrote {csv} ({take.n_frames} rows, {float(take.time[-1]):.2f} s) and {out} "
+    span = float(take.time[-1])
+    print(printable(f"wrote {csv} ({take.n_frames} rows, {span:.2f} s, "
+                    f"{(take.n_frames - 1) / span if span > 0 else 0.0:.0f} samples a second) and {out} "
                     f"({result.duet.n_frames} frames at 30 Hz)"))
     return EXIT_OK
 
@@ -203,6 +244,13 @@ def parser_live(sub) -> None:
     p.add_argument("--bind", default="0.0.0.0", metavar="ADDR",
                    help="the address to receive on (default 0.0.0.0: every network; 127.0.0.1: this machine only)")
     p.add_argument("--format", choices=("vmc", "osc"), default="vmc", help="the layout (default vmc)")
+    p.add_argument("--sender", type=sender_address, default=None, metavar="ADDR[:PORT]",
+                   help="take only this sender's samples (default: the first sender whose samples carry a head); "
+                        "every other sender is ignored and named with its packet count")
+    p.add_argument("--follow-restart", type=seconds_or_zero, default=FOLLOW_RESTART_S, metavar="S",
+                   help=f"when the sender has been silent S seconds, follow it to another port of its address "
+                        f"(it started again; vmc: with the same head serial); 0: never (default "
+                        f"{FOLLOW_RESTART_S:g})")
     p.add_argument("--duration", type=positive_float, default=None, metavar="S",
                    help="end the take S seconds after the dancer is first seen (default: at Ctrl-C)")
     p.add_argument("--height", type=height_metres, default=None, metavar="H",

@@ -63,6 +63,35 @@ class CausalResampler:
             self.k += 1
         return out
 
+    def due(self, times) -> tuple:
+        """The frames the rows so far make that are not made yet, read
+        together (rows that come faster than the frames are coalesced: only
+        the two rows around each frame's time are read). ``times``: every
+        row's time so far (relative, strictly increasing). Returns ``(ks, i,
+        a)``: the frames, their rows ``i, i + 1`` and the weight of ``i + 1``,
+        as :meth:`add` would make them row by row (and
+        :func:`~..resample.resample_take` over the whole take); the caller
+        makes each (:meth:`interp`) and moves :attr:`k` on."""
+        n = len(times)
+        if n < 2:
+            return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+        t_last = float(times[n - 1])
+        tol = _tolerance(np.array([float(times[0]), t_last]))
+        end = max(self.k, int(np.floor((t_last - tol) * self.fps)) - 2)
+        while end / self.fps + tol < t_last:  # the frames add() makes once the row at t_last has come
+            end += 1
+        ks = np.arange(self.k, end)
+        if not len(ks):
+            return ks, ks, np.zeros(0)
+        i, a = _bracket_rel(np.asarray(times[:n], dtype=np.float64), ks / self.fps, tol)
+        return ks, i, a
+
+    def interp(self, k, t0, p0, q0, t1, p1, q1, a):
+        """Frame ``k`` between two rows (as read: NaN where a device is lost) with weight ``a`` on the second."""
+        r0 = self._row(t0, p0, q0, np.isfinite(p0).all(-1) & np.isfinite(q0).all(-1))
+        r1 = self._row(t1, p1, q1, np.isfinite(p1).all(-1) & np.isfinite(q1).all(-1))
+        return self._interp(k, r0, r1, float(a))
+
     def _frame(self, k, r0, r1, tol):
         off = k / self.fps
         rel = np.array([r0[0], r1[0]])
@@ -102,7 +131,10 @@ class CausalResampler:
 
 
 class Rows:
-    """The take's rows so far, in arrays that grow by doubling."""
+    """The take's rows so far, in arrays that grow by doubling. A row is kept
+    as it came and made :func:`as_written` when it is first read
+    (:meth:`settle`): a fast sender's rows that no frame reads cost their
+    formatting only once, at the end, not as they come."""
 
     def __init__(self):
         self.n = 0
@@ -110,19 +142,29 @@ class Rows:
         self.pos = np.empty((1024, 3, 3))
         self.quat = np.empty((1024, 3, 4))
         self.arrival = np.empty(1024)  # this machine's clock when the row was made (for latency)
+        self.raw = np.zeros(1024, dtype=bool)  # not yet as written
 
     def append(self, t, pos, quat, arrival):
         if self.n == len(self.time):
             m = 2 * self.n
-            for name in ("time", "pos", "quat", "arrival"):
+            for name in ("time", "pos", "quat", "arrival", "raw"):
                 old = getattr(self, name)
-                new = np.empty((m,) + old.shape[1:])
+                new = np.zeros((m,) + old.shape[1:], dtype=old.dtype)
                 new[:self.n] = old[:self.n]
                 setattr(self, name, new)
         self.time[self.n], self.pos[self.n], self.quat[self.n], self.arrival[self.n] = t, pos, quat, arrival
+        self.raw[self.n] = True
         self.n += 1
+
+    def settle(self, rows=None) -> None:
+        """Make the rows (indices; None: all so far) as written (:func:`as_written`), once each."""
+        idx = np.flatnonzero(self.raw[:self.n]) if rows is None else np.asarray(rows)[self.raw[rows]]
+        for i in idx.tolist():
+            self.pos[i], self.quat[i] = as_written(self.pos[i], self.quat[i])
+        self.raw[idx] = False
 
     def take(self, n=None, meta=None) -> Take:
         """The first ``n`` rows as a take file reads them back."""
         n = self.n if n is None else n
+        self.settle(np.arange(n))
         return Take(self.time[:n].copy(), self.pos[:n].copy(), as_read(self.quat[:n]), dict(meta or {}))

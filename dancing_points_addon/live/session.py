@@ -36,11 +36,15 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
    that arrive meanwhile are caught up as those before the calibration are (no
    latency counted). A role given that the stream contradicts wins, with a
    warning.
-4. **frames**: each row is read as the calibration says, as
-   :func:`~..calibration.apply_calibration` reads a take, then resampled
-   causally to 30 Hz (:class:`.rows.CausalResampler`: the frames of
-   :func:`~..resample.resample_take`, each made once the row after it has
-   come) and synthesised (:meth:`~..runtime.Synthesizer.step_points`).
+4. **frames**: resampled causally to 30 Hz (:class:`.rows.CausalResampler`:
+   the frames of :func:`~..resample.resample_take`, each made once the row
+   after it has come) and synthesised
+   (:meth:`~..runtime.Synthesizer.step_points`). Only the two rows around a
+   frame's time are read for it, as the calibration says (as
+   :func:`~..calibration.apply_calibration` reads a take): rows that come
+   faster than the frames are coalesced, so a 1,000 Hz sender costs the loop
+   its rows, not 1,000 readings a second. The loop's thread takes every
+   sample that came while it made a frame at once, then makes the frames.
 
 :meth:`LiveSession.finish` ends it: trailing rows of lost devices are dropped
 (with the frames made from them) and it returns the take and the duet
@@ -53,11 +57,12 @@ import queue
 import threading
 import time
 from collections import deque
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..calibration import Calibration, apply_calibration
+from ..calibration import apply_calibration
 from ..errors import UserError
 from ..formats.limits import FLOOR_RANGE_M, HEIGHT_RANGE_M
 from ..formats.take import Take
@@ -65,14 +70,16 @@ from ..resample import NET_FPS, output_offsets
 from . import ROLES
 from .protocol import META_ANNOUNCE
 from .receiver import Counters, Sample
-from .rows import CausalResampler, Rows, as_read, as_written
+from .rows import CausalResampler, Rows, as_read
 
 SOURCE_DEVICES = {"vmc": "openxr", "osc": "joints", "xr": "openxr"}
+RATE_WINDOW_S = 1.0  # the input rate is the samples of this last window
 META_WAIT_S = 2.0  # announced metadata not yet come: the calibration waits this long past its window
 # the stream's metadata keys the calibration reads, and the option that overrides each
 CALIBRATION_META = {"devices": "devices", "height_m": "height", "floor_y": "floor_y",
                     "head_offset_m": "head_offset", "lhand_offset_m": "hand_offset",
-                    "rhand_offset_m": "hand_offset", "role": "role"}
+                    "rhand_offset_m": "hand_offset", "role": "role", "head_turn": "head_turn",
+                    "lhand_turn": "hand_turn", "rhand_turn": "hand_turn"}
 
 
 @dataclass(frozen=True)
@@ -92,6 +99,8 @@ class LiveOptions:
     devices: str | None = None
     head_offset: tuple | None = None
     hand_offset: tuple | None = None
+    head_turn: tuple | None = None
+    hand_turn: tuple | None = None
     role: str | None = None
     calibration_s: float = 1.0
     gap_s: float = 0.1
@@ -108,6 +117,7 @@ class LiveOptions:
         return SynthesisOptions(models=self.models, threads=self.threads, height=self.height,
                                 foot_lock=self.foot_lock, hand_ik=self.hand_ik, floor_y=self.floor_y,
                                 devices=self.devices, head_offset=self.head_offset, hand_offset=self.hand_offset,
+                                head_turn=self.head_turn, hand_turn=self.hand_turn,
                                 follow_devices=self.follow_devices, role=self.role)
 
 
@@ -122,6 +132,13 @@ class LiveResult:
     counters: dict
     latency_ms: tuple  # (median, 99th percentile) of the frames made live, or (nan, nan)
     steady_ms: tuple = (math.nan, math.nan)  # the same from a second after the calibration (caught up)
+
+
+def ignored_senders_text(ignored) -> str:
+    """``ignored 2 other senders (1,234 packets)`` of :meth:`~.receiver.SenderGate.ignored`'s list."""
+    n = len(ignored)
+    return (f"ignored {n} other sender{'s' if n != 1 else ''} "
+            f"({sum(p for _, p in ignored):,} packets)")
 
 
 def _offset_text(v) -> str:
@@ -156,7 +173,6 @@ class LiveSession:
         self.warnings = []  # lines for the user (the calibration went on without the announced metadata)
         self.resampler = CausalResampler()
         self._last_dev = [None, None, None]  # per device: (clock time, (position, quat)) last heard
-        self._done = 0  # rows read into frames
         self._catchup = 0  # rows read when the calibration came (not live: no latency counted)
         self._calibrated_t = 0.0  # the take's time of the row the calibration came with
         self._silent = False  # the last row was made of silence
@@ -165,7 +181,8 @@ class LiveSession:
         self.latency = []  # (frame, seconds from a row's arrival to the frame), frames made live (not catching up)
         self.compute_s = []  # seconds of synthesis per frame
         self._recent = deque(maxlen=64)  # (clock time, latency) of the last frames
-        self._arrivals = deque(maxlen=256)  # clock times of the last samples (the input rate)
+        self._arrivals = deque()  # clock times of the samples of the last second (the input rate)
+        self.gate = None  # the receiver's SenderGate (the sender and the senders ignored), when there is one
         self._queue = queue.SimpleQueue()
         self._thread = None
         self._stop = threading.Event()
@@ -188,7 +205,12 @@ class LiveSession:
 
     # -- input -------------------------------------------------------------------
     def put(self, sample: Sample) -> None:
-        """From any thread: one sample for the loop."""
+        """From one thread (the receiver's, or the caller's): one sample for the
+        loop; counted at once for the input rate, read or not."""
+        arrivals = self._arrivals
+        arrivals.append(sample.time)
+        while arrivals and sample.time - arrivals[0] > RATE_WINDOW_S:
+            arrivals.popleft()
         self._queue.put(sample)
 
     # -- the thread ------------------------------------------------------------------
@@ -204,7 +226,10 @@ class LiveSession:
                 except queue.Empty:
                     self.tick(self.clock())
                     continue
-                self.feed(s)
+                with self._lock:  # this sample and all that came meanwhile, then their frames
+                    self._ingest(s)
+                    self._drain()
+                    self._work(None)
             while True:  # what came before the stop
                 try:
                     self.feed(self._queue.get_nowait())
@@ -263,7 +288,6 @@ class LiveSession:
                 break
 
     def _ingest(self, s: Sample) -> None:
-        self._arrivals.append(s.time)
         if s.meta:
             self.stream_meta.update(s.meta)
         if not s.poses:
@@ -307,8 +331,7 @@ class LiveSession:
             if datagrams:
                 self.counters.add(late=datagrams, used=-datagrams)
             return
-        pos, quat = as_written(pos, quat)
-        rows.append(t, pos, quat, t_abs)
+        rows.append(t, pos, quat, t_abs)  # (as written when it is read: Rows.settle)
         self._last_abs = t_abs
         self._silent = silent and not valid.any()
         if datagrams or not silent:
@@ -340,7 +363,8 @@ class LiveSession:
     def _meta(self) -> dict:
         """The stream's metadata the calibration reads (devices, height, floor,
         offsets), each only when it is a value a take file may carry."""
-        from ..formats.devices import DEVICE_KINDS, META_OFFSET_KEYS, parse_offset
+        from ..formats.devices import DEVICE_KINDS, META_OFFSET_KEYS, META_TURN_KEYS, parse_offset, parse_turn
+        from ..formats.take import ORIENTATION_VALUES, ORIENTATIONS_KEY
 
         meta = {}
         for key, v in self.stream_meta.items():
@@ -353,6 +377,11 @@ class LiveSession:
                     meta[key] = v
                 elif key in META_OFFSET_KEYS:
                     parse_offset(v, key)
+                    meta[key] = v
+                elif key in META_TURN_KEYS:
+                    parse_turn(v, key)
+                    meta[key] = v
+                elif key == ORIENTATIONS_KEY and v in ORIENTATION_VALUES:
                     meta[key] = v
             except (ValueError, UserError):
                 continue
@@ -403,8 +432,8 @@ class LiveSession:
         read the rows so far into frames."""
         c = self.synth.calibrate(self.rows.take(n, self._meta()))
         meta = c.meta()
-        calibration = Calibration(c.devices, float(meta["height_m"]), c.height_source, float(meta["floor_y"]),
-                                  c.floor_source, c.offsets, c.role)
+        # the height and floor as the take file will say them (rounded), the rest as calibrated
+        calibration = dataclasses.replace(c, height=float(meta["height_m"]), floor_y=float(meta["floor_y"]))
         if c.role != self.synth.role:
             self._switch_role(c.role)
         self.calibration = calibration
@@ -434,27 +463,35 @@ class LiveSession:
                              f"{', '.join(said)}")
 
     def _work(self, budget_s) -> int:
-        """Read the rows not yet read into frames (the catch-up's for at most
-        ``budget_s`` seconds; None: all); returns how many are left."""
+        """Make the frames the rows so far allow (the catch-up's for at most
+        ``budget_s`` seconds; None: all); returns how many are left. Rows that
+        came faster than the frames are coalesced: each frame reads only the
+        two rows around its time (:meth:`.rows.CausalResampler.due`), so the
+        work a second does not grow with the input rate."""
         c = self.calibration
         rows = self.rows
         if c is None:
             return 0
         t0 = self.clock() if budget_s is not None else 0.0
-        while self._done < rows.n:
-            i = self._done
-            one = Take(rows.time[i:i + 1], rows.pos[i:i + 1], as_read(rows.quat[i:i + 1]), {})
-            with np.errstate(invalid="ignore", divide="ignore"):  # lost devices: NaN in, NaN out
-                read = apply_calibration(one, c, fill_start=False)
-            p, q = read.positions[0], read.quats[0]
-            valid = np.isfinite(p).all(-1) & np.isfinite(q).all(-1)
-            for k, pk, qk, ok in self.resampler.add(rows.time[i], p, q, valid):
-                live = i >= self._catchup and rows.arrival[i] >= self._live_after
-                self._step(k, pk, qk, ok, rows.arrival[i] if live else None)
-            self._done = i + 1
-            if budget_s is not None and self._done < self._catchup and self.clock() - t0 >= budget_s:
-                break
-        return rows.n - self._done
+        ks, idx, a = self.resampler.due(rows.time[:rows.n])
+        if not len(ks):
+            return 0
+        need = np.unique(np.concatenate([idx, idx + 1]))
+        rows.settle(need)
+        one = Take(rows.time[need], rows.pos[need], as_read(rows.quat[need]), {})
+        with np.errstate(invalid="ignore", divide="ignore"):  # lost devices: NaN in, NaN out
+            read = apply_calibration(one, c, fill_start=False)
+        j = np.searchsorted(need, idx)
+        for m, k in enumerate(ks.tolist()):
+            j0, j1, upper = int(j[m]), int(j[m]) + 1, int(idx[m]) + 1
+            _, pk, qk, ok = self.resampler.interp(k, rows.time[upper - 1], read.positions[j0], read.quats[j0],
+                                                  rows.time[upper], read.positions[j1], read.quats[j1], a[m])
+            live = upper >= self._catchup and rows.arrival[upper] >= self._live_after
+            self._step(k, pk, qk, ok, rows.arrival[upper] if live else None)
+            self.resampler.k = k + 1
+            if budget_s is not None and upper < self._catchup and self.clock() - t0 >= budget_s:
+                return len(ks) - m - 1
+        return 0
 
     def _step(self, k, pos, quat, ok, arrival) -> None:
         t0 = self.clock()
@@ -475,7 +512,8 @@ class LiveSession:
 
     # -- status ------------------------------------------------------------------------
     def status(self, now: float | None = None) -> dict:
-        """Input rate (samples a second over the last second), frames made, the
+        """Input rate (samples received a second over the last second, whether
+        the loop has read them yet or not), frames made, the
         counters, the latency (ms, median of the last frames), the state."""
         now = self.clock() if now is None else now
         recent = [t for t in list(self._arrivals) if now - t <= 1.0]
@@ -488,17 +526,26 @@ class LiveSession:
             state = "waiting for the stream's metadata" if waiting else "calibrating"
         else:
             state = "dancing"
+        gate = self.gate
+        sender = gate.sender() if gate is not None else ""
+        ignored = gate.ignored() if gate is not None else []
+        if gate is not None and not sender and self.t_first is None:
+            state = "waiting for a sender with a head" + (f" at {gate.want[0]}" if gate.want else "")
         return {"rate_hz": float(len(recent)), "frames": len(self._frames["lp"]), "state": state,
                 "latency_ms": 1000.0 * float(np.median(lat)) if lat else math.nan,
                 "seconds": 0.0 if self.t_first is None else max(0.0, now - self.t_first), **c,
-                "dropped": c["late"] + c["malformed"] + c["ignored"]}
+                "dropped": c["late"] + c["malformed"] + c["ignored"], "sender": sender, "ignored_senders": ignored}
 
     def status_line(self, now: float | None = None) -> str:
         s = self.status(now)
         lat = "-" if math.isnan(s["latency_ms"]) else f"{s['latency_ms']:.1f} ms"
-        return (f"{self.describe}{s['state']} {s['seconds']:.1f} s | in {s['rate_hz']:.0f} Hz | "
-                f"duet frame {s['frames']} | dropped {s['dropped']} (late {s['late']}, bad {s['malformed']}, "
-                f"other {s['ignored']}) | lost {s['lost']} | latency {lat}")
+        line = (f"{self.describe}{s['state']} {s['seconds']:.1f} s | in {s['rate_hz']:.0f} Hz"
+                f"{' from ' + s['sender'] if s['sender'] else ''} | duet frame {s['frames']} | "
+                f"latency {lat} | dropped {s['dropped']} (late {s['late']}, bad {s['malformed']}, "
+                f"other {s['ignored']}) | lost {s['lost']}")
+        if s["ignored_senders"]:
+            line += f" | {ignored_senders_text(s['ignored_senders'])}"
+        return line
 
     # -- the end -------------------------------------------------------------------------
     def take_meta(self) -> dict:
@@ -532,6 +579,7 @@ class LiveSession:
                 self._calibrate(n)
             self._warn_role()  # (a role that came after the calibration)
             self._work(None)
+            rows.settle()
             times, pos, quat = rows.time[:n], rows.pos[:n], rows.quat[:n]
             with np.errstate(invalid="ignore", divide="ignore"):
                 read = apply_calibration(Take(times, pos, as_read(quat), {}), self.calibration, fill_start=False)
@@ -577,6 +625,7 @@ class LiveSession:
                         meta[key] = v
                 meta = self._finish_meta(meta, offsets_for(meta, o.head_offset, o.hand_offset))
             rows = self.rows
+            rows.settle()
             return Take(rows.time[:n].copy(), rows.pos[:n].copy(), rows.quat[:n].copy(), meta)
 
     def _latency_stats(self, after_s):

@@ -23,6 +23,7 @@ import time
 
 import numpy as np
 
+from ..errors import UserError
 from ..formats.take import Take
 from .protocol import META_KEYS, sample_datagrams
 from .session import META_WAIT_S, LiveOptions
@@ -30,6 +31,7 @@ from .session import META_WAIT_S, LiveOptions
 # past the receiver's calibration window and its wait for announced metadata, with a second to spare
 META_EVERY_SAMPLE_S = LiveOptions.calibration_s + META_WAIT_S + 1.0
 META_EVERY_S = 0.25
+SPIN_S = 0.0001  # a sample is waited for by sleeping up to this before its time, then spinning
 
 
 def stream_rows(take: Take, rate: float | None = None):
@@ -44,14 +46,17 @@ def stream_rows(take: Take, rate: float | None = None):
 
 def stream_take(take: Take, port: int, host: str = "127.0.0.1", fmt: str = "vmc", rate: float | None = None,
                 loop: bool = False, duration: float | None = None, drop: float = 0.0, seed: int = 0,
-                bundle: bool = True, clock=time.perf_counter, sleep=time.sleep, progress=None) -> dict:
+                bundle: bool = True, clock=time.perf_counter, sleep=time.sleep, progress=None,
+                source_port: int = 0) -> dict:
     """Send ``take`` to ``host:port`` in real time; returns ``{"sent", "samples",
-    "dropped", "seconds", "errors"}`` (datagrams sent, samples, datagrams left
-    out on purpose, wall time, sends the system refused). ``progress(sent)`` is
+    "dropped", "seconds", "errors", "source_port"}`` (datagrams sent, samples,
+    datagrams left out on purpose, wall time, sends the system refused, the
+    port it sent from: the receiver names a sender by it; ``source_port``: send
+    from this port, 0: any). ``progress(sent)`` is
     called about once a second."""
     times, pos, quats = stream_rows(take, rate)
     if len(times) < 1:
-        return {"sent": 0, "samples": 0, "dropped": 0, "seconds": 0.0, "errors": 0}
+        return {"sent": 0, "samples": 0, "dropped": 0, "seconds": 0.0, "errors": 0, "source_port": 0}
     step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0 / 30.0
     period = float(times[-1]) + step  # a loop starts again one sample after the end
     meta = {k: str(v) for k, v in take.meta.items() if k in META_KEYS}
@@ -61,6 +66,12 @@ def stream_take(take: Take, port: int, host: str = "127.0.0.1", fmt: str = "vmc"
     rng = random.Random(seed)
     sent = dropped = errors = n = 0
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    if source_port:
+        try:
+            sock.bind(("", int(source_port)))
+        except OSError as exc:
+            sock.close()
+            raise UserError(f"cannot send from UDP port {source_port}: {exc.strerror or exc}") from None
     start = clock()
     next_progress = start + 1.0
     try:
@@ -72,8 +83,8 @@ def stream_take(take: Take, port: int, host: str = "127.0.0.1", fmt: str = "vmc"
             if duration is not None and rel > duration:
                 break
             wait = start + rel - clock()
-            if wait > 0.002:
-                sleep(wait - 0.001)
+            if wait > SPIN_S:  # sleep, then spin the last fraction of a millisecond (high rates: not a core busy)
+                sleep(wait - SPIN_S)
             while clock() < start + rel:
                 pass
             with_meta = rel < META_EVERY_SAMPLE_S or n % per_meta == 0
@@ -92,5 +103,10 @@ def stream_take(take: Take, port: int, host: str = "127.0.0.1", fmt: str = "vmc"
                 next_progress += 1.0
                 progress(sent)
     finally:
+        try:
+            source = sock.getsockname()[1]  # the port it sent from (0: it sent nothing)
+        except OSError:
+            source = 0
         sock.close()
-    return {"sent": sent, "samples": n, "dropped": dropped, "seconds": clock() - start, "errors": errors}
+    return {"sent": sent, "samples": n, "dropped": dropped, "seconds": clock() - start, "errors": errors,
+            "source_port": source}
