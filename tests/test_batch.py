@@ -126,7 +126,7 @@ def test_npz(takes, converted):
             assert set(z.files) == {"fps", "time", "joint_names", "leader_positions", "follower_positions",
                                     "leader_rotations", "follower_rotations", "leader_contacts",
                                     "follower_contacts", "tracked_role", "height_m", "height_source", "floor_y",
-                                    "floor_source", "devices"}
+                                    "floor_source", "devices", "orientations_followed", "device_turns"}
             assert str(z["tracked_role"]) == "leader" and str(z["height_source"]) == "estimated"
             T = files[rel]["frames"]
             assert float(z["fps"]) == 30.0 and z["fps"].shape == ()
