@@ -132,7 +132,8 @@ class FootLocker:
     straight towards it (the ankle then misses the lock by the shortfall).
 
     ``options``: a :class:`FootLockOptions`. Off by default (the partner uses
-    them, see ``FollowerOptions.foot_lock``):
+    them all, see ``FollowerOptions.foot_lock``; the tracked dancer
+    ``clearance`` and ``lift_ball``, see :data:`TRACKED_FOOT_LOCK`):
     ``land_still``: a free foot that
     locks stays where it was on the last frame instead of carrying that
     frame's motion into the lock; ``clearance`` (m): a free foot moving
