@@ -42,8 +42,8 @@ class _Side:
 @dataclass(frozen=True)
 class FootLockOptions:
     """One dancer's foot lock (:class:`FootLocker`, where each option is
-    explained). The defaults are the tracked dancer's; the synthesised
-    partner's are ``FollowerOptions.foot_lock``."""
+    explained). The tracked dancer's are :data:`TRACKED_FOOT_LOCK`; the
+    synthesised partner's are ``FollowerOptions.foot_lock``."""
 
     on: float = 0.6  # a contact point plants above this probability
     off: float = 0.4  # and lifts below this one
@@ -70,6 +70,15 @@ class FootLockOptions:
         if bad or not self.step_height <= self.step_max or not 0.0 <= self.clear_speed[0] < self.clear_speed[1]:
             raise ValueError(f"FootLockOptions: {', '.join(bad) or 'step_height, step_max or clear_speed'} "
                              f"out of range in {self!r}")
+
+
+# The tracked dancer's foot lock (val, the shipped networks; models/README.md). Against the
+# defaults: a lock holds until its predicted point is 20 cm away, not 15; a release is a catch-up
+# step 8-12 cm high that lifts the ball too; a free foot moving fast is lifted 5 cm off its floor.
+# On a body other than the training leader's his feet sit lower against the dancer's own floor,
+# and a step 6 cm high that left the ball down swept it along the floor: skating on her points as a
+# leader take 27.8 -> 12.0 cm/s (ground truth 17.9), role=follower 28.7 -> 7.7 (17.9).
+TRACKED_FOOT_LOCK = FootLockOptions(max_drift=0.2, step_height=0.08, step_max=0.12, clearance=0.05, lift_ball=True)
 
 
 class FootLocker:
@@ -123,7 +132,8 @@ class FootLocker:
     straight towards it (the ankle then misses the lock by the shortfall).
 
     ``options``: a :class:`FootLockOptions`. Off by default (the partner uses
-    them, see ``FollowerOptions.foot_lock``):
+    them all, see ``FollowerOptions.foot_lock``; the tracked dancer
+    ``clearance`` and ``lift_ball``, see :data:`TRACKED_FOOT_LOCK`):
     ``land_still``: a free foot that
     locks stays where it was on the last frame instead of carrying that
     frame's motion into the lock; ``clearance`` (m): a free foot moving
