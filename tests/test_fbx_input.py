@@ -48,6 +48,9 @@ from dancing_points_addon.formats.take import (read_take, take_from_motion, take
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer  # noqa: E402
 
 MM = 1e-3
+# Blender's FBX exporter simplifies the keys: the duet of its file lies a few millimetres from the
+# CSV's (2.7 mm mean over the leader's joints, measured 2026-12-02; the acceptance allows 25 mm).
+FBX_SIMPLIFIED = 5 * MM
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +124,7 @@ def test_blender_import_of_blenders_fbx_is_as_exact_as_bvh(files):
               f"from the CSV's duet (mean){' (orientations not read)' if unread else ''}")
         # the file's rest pose is the SPEC's (exact rotations), but for the unskinned armature's
         assert unread == ("unskinned" in name)
-    assert got["Blender's FBX export"]["leader"] < 2 * MM
+    assert got["Blender's FBX export"]["leader"] < FBX_SIMPLIFIED
     assert max(got["Blender's FBX export, keys not simplified"].values()) < 0.01 * MM
     assert got["Blender's BVH export"]["leader"] < 2 * MM
 
@@ -134,7 +137,7 @@ def test_synthesize_and_extract_of_an_fbx(files, tmp_path):
         assert res.returncode == 0, res.stderr
         diff = _npz_diff(out, ref)
         print(f"\nsynthesize {name}: leader {diff['leader'] / MM:.3f} mm, follower {diff['follower'] / MM:.3f} mm")
-        assert diff["leader"] < (2 * MM if name == "seg.fbx" else 0.01 * MM)
+        assert diff["leader"] < (FBX_SIMPLIFIED if name == "seg.fbx" else 0.01 * MM)
     res = run_cli("extract", d / "exact.fbx", "-o", tmp_path / "x.csv", timeout=300)
     assert res.returncode == 0, res.stderr
     back, want = read_take(tmp_path / "x.csv"), files["take"]
@@ -168,7 +171,7 @@ def test_a_folder_mixing_fbx_bvh_csv_amc_in_one_batch(files, tmp_path):
         diff = {k: _npz_diff(out / f"{k}.npz", ref) for k in "abc"}
         print(f"\nbatch{' ' + ' '.join(extra) if extra else ''}: " + ", ".join(
             f"{k}: leader {v['leader'] / MM:.3f} mm" for k, v in diff.items()))
-        assert diff["a"]["leader"] < 2 * MM and diff["c"]["leader"] < 1e-6
+        assert diff["a"]["leader"] < FBX_SIMPLIFIED and diff["c"]["leader"] < 1e-6
 
 
 def test_without_bpy_one_line_says_how(files, tmp_path, monkeypatch):
