@@ -15,7 +15,6 @@ import argparse
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -30,6 +29,7 @@ sys.path.insert(0, str(ROOT))
 from dancing_points_addon.formats.asf_amc import load_amc  # noqa: E402
 from dancing_points_addon.formats.take import Take, read_take, take_from_motion, take_to_text  # noqa: E402
 from dancing_points_addon.live.stream import stream_rows  # noqa: E402
+from bench_live_rate import _free_port  # noqa: E402  (beside this script)
 
 SHARED = Path(os.environ.get("DP_SHARED", ROOT.parent / "shared"))
 SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"
@@ -37,14 +37,6 @@ PY = sys.executable
 SPEC_KEYS = ("leader_positions", "leader_rotations", "leader_contacts", "follower_positions", "follower_rotations",
              "follower_contacts")
 RATES = (500, 1000, 72, 250)
-
-
-def _free_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def _other_takes(work: Path) -> list:

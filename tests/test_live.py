@@ -36,6 +36,7 @@ from dancing_points_addon.live.xr import motion_to_xr, xr_to_motion
 from dancing_points_addon.resample import resample_take
 from dancing_points_addon.rotations import quat_to_matrix
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from support.helpers import free_udp_port
 
 SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"
 SPEC_KEYS = ("time", "leader_positions", "leader_rotations", "leader_contacts", "follower_positions",
@@ -1054,14 +1055,6 @@ def _kept_rows_are_the_dancers(kept, sent_take, rate):
     return float(np.nanmax(d)), first
 
 
-def _free_port():
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 @pytest.mark.parametrize("fmt,chosen", [("vmc", True), ("osc", False)])
 def test_other_senders_to_the_same_port_are_ignored_and_named(tmp_path, her_take, fmt, chosen):
     """``live`` with three senders to its port: the dancer (the sample take,
@@ -1074,7 +1067,7 @@ def test_other_senders_to_the_same_port_are_ignored_and_named(tmp_path, her_take
     other = tmp_path / "other.csv"
     other.write_text(take_to_text(her_take))
     out = tmp_path / "room.npz"
-    source = _free_port()
+    source = free_udp_port()
     live, port = _start_live("--format", fmt, "-o", out, *(("--sender", f"127.0.0.1:{source}") if chosen else ()))
     procs = []
     try:

@@ -28,6 +28,7 @@ bpy = pytest.importorskip("bpy")
 from support import blender_scene_util as bsu  # noqa: E402
 from conftest import MODELS, ROOT  # noqa: E402
 from support.ext_util import import_from_extension  # noqa: E402
+from support.helpers import free_udp_port  # noqa: E402
 
 from dancing_points_addon.blender_math import C  # noqa: E402
 from dancing_points_addon.calibration import headset_take  # noqa: E402
@@ -53,14 +54,6 @@ def live(dp_extension, monkeypatch):
     yield mod
     if mod.running() is not None:
         mod.stop(keep=False)
-
-
-def _free_port():
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def _port_free(port):
@@ -122,7 +115,7 @@ def test_tick_latency_and_stop_keeps_the_take(live, tmp_path):
     as the timer would, each followed by the depsgraph update a redraw makes."""
     blend = tmp_path / "scene.blend"
     assert bpy.ops.wm.save_as_mainfile(filepath=str(blend)) == {'FINISHED'}
-    port = _free_port()
+    port = free_udp_port()
     run = live.start(bpy.context, _settings('VMC', port))
     sender = subprocess.Popen([sys.executable, "-m", "dancing_points_addon", "stream", str(SAMPLE), "--port",
                                str(port), "--rate", "72", "--duration", "8"], cwd=ROOT,
@@ -261,7 +254,7 @@ def test_blender_vr_source_gives_the_openxr_takes_duet(live, tmp_path, monkeypat
 
 
 def test_start_stop_start_again_and_a_taken_port(live):
-    port = _free_port()
+    port = free_udp_port()
     tk = read_take(SAMPLE)
     good = P.sample_datagrams("vmc", 0, 0.0, tk.positions[0], tk.quats[0])[0]
     for _ in range(2):
@@ -298,7 +291,7 @@ def test_start_stop_start_again_and_a_taken_port(live):
 def test_loading_another_file_while_live_stops_it(live):
     """Closing the file (read_homefile: load_pre) while live: no thread, socket or
     timer left; the take is kept as a file (the temporary folder: the file was unsaved)."""
-    port = _free_port()
+    port = free_udp_port()
     _settings('VMC', port)
     assert bpy.ops.dancing_points.live_start() == {'FINISHED'}
     take = read_take(SAMPLE)
@@ -346,7 +339,7 @@ def test_live_panel_draws(live):
 
     panel.draw(Fake, bpy.context)
     assert ("op", "dancing_points.live_start") in log and ("prop", "port") in log
-    port = _free_port()
+    port = free_udp_port()
     live.start(bpy.context, _settings('VMC', port))
     log.clear()
     panel.draw(Fake, bpy.context)
@@ -362,7 +355,7 @@ def test_start_refuses_a_height_or_floor_out_of_range(live):
     from dancing_points_addon.formats.limits import FLOOR_RANGE_M
     from dancing_points_addon.formats.limits import HEIGHT_RANGE_M
 
-    port = _free_port()
+    port = free_udp_port()
     s = _settings('VMC', port)
     props = s.bl_rna.properties
     assert props["height"].hard_max == HEIGHT_RANGE_M[1]
@@ -439,7 +432,7 @@ def test_the_sessions_warnings_are_shown(live, tmp_path, capfd):
     and Stop reports it (it used to sit in a list nothing showed)."""
     t, pos, quats = stream_rows(read_take(SAMPLE), 72.0)
     assert bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend")) == {'FINISHED'}
-    live.start(bpy.context, _settings('OSC', _free_port()))
+    live.start(bpy.context, _settings('OSC', free_udp_port()))
     for i in range(int(2.0 * 72)):
         live.running().session.put(Sample(500.0 + float(t[i]), {d: (pos[i][d], quats[i][d]) for d in range(3)},
                                           meta={"role": "follower", "devices": "joints"}))
@@ -466,7 +459,7 @@ def test_other_senders_are_ignored_and_named(live, tmp_path):
     tk = read_take(SAMPLE)
     aside = Take(tk.time, tk.positions + np.array([1.0, 0.0, 0.0]), tk.quats, dict(tk.meta))
     other.write_text(take_to_text(aside))
-    port, source = _free_port(), _free_port()
+    port, source = free_udp_port(), free_udp_port()
     s = _settings('VMC', port)
     s.sender = "127.0.0.1:{:d}".format(source)
     live.start(bpy.context, s)

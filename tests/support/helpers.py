@@ -478,3 +478,14 @@ TGT_POINTS = {
     "unreal": {"lhip": "thigh_l", "rhip": "thigh_r", "head": "head", "lwrist": "hand_l", "rwrist": "hand_r",
                "lankle": "foot_l", "rankle": "foot_r", "lball": "ball_l", "rball": "ball_r"},
 }
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that nothing listens on (just now)."""
+    import socket
+
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
