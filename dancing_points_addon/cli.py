@@ -27,9 +27,8 @@ import sys
 import threading
 
 from .argtypes import (CLI_SIGNALS, EXIT_OK, Parser, Terminated, add_audio_arguments, add_calibration_arguments,
-                       after_imports,
-                       calibration_options, exit_for, height_metres, offset_metres, positive_float, positive_int,
-                       printable, thread_count)
+                       after_imports, calibration_options, exit_for, height_metres, offset_metres, positive_float,
+                       positive_int, printable, thread_count)
 from .errors import InputError
 from .formats.files import check_output_path
 from .live.cli import parser_live, parser_stream
@@ -70,7 +69,6 @@ def check_not_input(args, outputs) -> None:
 
 def warn(text) -> None:
     """One warning line on stderr."""
-    import sys
     print(printable("warning: " + text), file=sys.stderr, flush=True)
 
 
@@ -201,7 +199,7 @@ def cmd_synthesize(args) -> int:
     duet.song = song
     print(printable(f"{take.source}: {duet.calibration.describe()}"))
     if duet.calibration.notice():
-        print(printable(f"warning: {take.source}: {duet.calibration.notice()}"), file=sys.stderr)
+        warn(f"{take.source}: {duet.calibration.notice()}")
     if ext == ".npz":
         save_npz(duet, out)
     else:

@@ -89,15 +89,12 @@ class VIEW3D_PT_dancing_points_take(SubPanel, bpy.types.Panel):
         layout.operator("dancing_points.remove_take", text="Remove Take", icon='TRASH').take = take.name
 
 
-class VIEW3D_PT_dancing_points_turns(bpy.types.Panel):
+class VIEW3D_PT_dancing_points_turns(SubPanel, bpy.types.Panel):
     """The active take's device turns: devices that report another convention than SPEC §3's."""
 
     bl_idname = "VIEW3D_PT_dancing_points_turns"
     bl_label = "Device Turns"
-    bl_space_type = 'VIEW_3D'
-    bl_region_type = 'UI'
-    bl_category = "Dancing Points"
-    bl_parent_id = "VIEW3D_PT_dancing_points_take"
+    bl_parent_id = "VIEW3D_PT_dancing_points_take"  # under the Take panel
     bl_options = {'DEFAULT_CLOSED'}
 
     @classmethod
