@@ -495,7 +495,7 @@ def test_the_fast_osc_reader_and_writer_are_python_oscs(take):
             assert repr(got) == repr(want), d  # (repr: NaN arguments alike)
             out = []
             try:
-                P._fast_messages(d, out)
+                P._fast_messages(d, out, 0, len(d))
                 fast += 1
             except P._Unusual:
                 pass

@@ -120,12 +120,14 @@ _ARG_SIZE = {"i": 4, "f": 4, "d": 8}
 _BUNDLE = b"#bundle\x00"
 
 
-def _fast_string(d: bytes, i: int) -> tuple:
-    j = d.find(b"\x00", i)
+def _fast_string(d: bytes, i: int, start: int, end: int) -> tuple:
+    """The string at ``i`` of the message ``d[start:end]`` and where the next
+    item starts (its null, padded to 4 bytes from the message's start)."""
+    j = d.find(b"\x00", i, end)
     if j < 0:
         raise _Unusual
-    nxt = (j + 4) & ~3  # the null, then padded to 4 bytes
-    if nxt > len(d):
+    nxt = start + ((j - start + 4) & ~3)
+    if nxt > end:
         raise _Unusual
     try:
         return d[i:j].decode("utf-8"), nxt
@@ -133,47 +135,75 @@ def _fast_string(d: bytes, i: int) -> tuple:
         raise _Unusual from None
 
 
-def _fast_message(d: bytes) -> tuple:
-    address, i = _fast_string(d, 0)
-    n = len(d)
-    if i == n:
+_PLANS = {}  # a message's type tags -> how to read its arguments (see _plan)
+_MAX_PLANS = 256  # (a fuzzing sender's odd tag strings are read without keeping their plan)
+
+
+def _plan(tags: str) -> tuple:
+    """The arguments of ``tags`` (``,`` then ``i f d s``) as steps: None (a
+    string) or one ``struct`` for a run of numbers, read in one call."""
+    plan = _PLANS.get(tags)
+    if plan is not None:
+        return plan
+    steps, run = [], ""
+    for c in tags[1:]:
+        if c == "s":
+            if run:
+                steps.append(struct.Struct(">" + run))
+                run = ""
+            steps.append(None)
+        elif c in _ARG_SIZE:
+            run += c
+        else:
+            raise _Unusual
+    if run:
+        steps.append(struct.Struct(">" + run))
+    plan = tuple(steps)
+    if len(_PLANS) < _MAX_PLANS:
+        _PLANS[tags] = plan
+    return plan
+
+
+def _fast_message(d: bytes, start: int, end: int) -> tuple:
+    address, i = _fast_string(d, start, start, end)
+    if i == end:
         return address, []
     if d[i:i + 1] != b",":
         raise _Unusual
-    tags, i = _fast_string(d, i)
+    tags, i = _fast_string(d, i, start, end)
     args = []
-    for c in tags[1:]:
-        if c == "s":
-            v, i = _fast_string(d, i)
+    for step in _plan(tags):
+        if step is None:
+            v, i = _fast_string(d, i, start, end)
+            args.append(v)
         else:
-            size = _ARG_SIZE.get(c)
-            if size is None or i + size > n:
+            if i + step.size > end:
                 raise _Unusual
-            v = (_INT if c == "i" else _FLOAT if c == "f" else _DOUBLE).unpack_from(d, i)[0]
-            i += size
-        args.append(v)
+            args.extend(step.unpack_from(d, i))
+            i += step.size
     return address, args
 
 
-def _fast_messages(d: bytes, out: list, depth: int = 0) -> None:
+def _fast_messages(d: bytes, out: list, start: int, end: int, depth: int = 0) -> None:
     """The common datagrams (messages of ``i f d s`` arguments, bundles of
     them) read with ``struct``, as ``python-osc`` reads them; anything else
-    raises :class:`_Unusual` (then ``python-osc`` reads it)."""
-    if d.startswith(_BUNDLE):
-        if depth > MAX_BUNDLE_DEPTH or len(d) < 16:
+    raises :class:`_Unusual` (then ``python-osc`` reads it). ``d[start:end]``:
+    the packet (a bundle's element is read in place)."""
+    if d.startswith(_BUNDLE, start, end):
+        if depth > MAX_BUNDLE_DEPTH or end - start < 16:
             raise _Unusual
-        i, n = 16, len(d)
-        while i < n:
-            if i + 4 > n:
+        i = start + 16
+        while i < end:
+            if i + 4 > end:
                 raise _Unusual
             size = _INT.unpack_from(d, i)[0]
             i += 4
-            if size <= 0 or i + size > n:
+            if size <= 0 or i + size > end:
                 raise _Unusual
-            _fast_messages(d[i:i + size], out, depth + 1)
+            _fast_messages(d, out, i, i + size, depth + 1)
             i += size
-    elif d[:1] == b"/":
-        out.append(_fast_message(d))
+    elif d[start:start + 1] == b"/":
+        out.append(_fast_message(d, start, end))
     else:
         raise _Unusual
 
@@ -186,7 +216,7 @@ def osc_messages(dgram: bytes) -> list:
     a 1,000 Hz sender), the rest by ``python-osc``; both give the same."""
     out = []
     try:
-        _fast_messages(dgram, out)
+        _fast_messages(dgram, out, 0, len(dgram))
         return out
     except (_Unusual, struct.error, RecursionError):
         pass
@@ -233,18 +263,33 @@ def _number(v) -> float:
     return x
 
 
+_FLOAT_ONLY = {float}
+
+
+def _numbers(vals) -> list:
+    """``vals`` as floats; :class:`BadMessage` unless each is a finite number
+    (floats, as OSC's ``f`` and ``d`` arrive, checked at once)."""
+    vals = list(vals)
+    if {*map(type, vals)} == _FLOAT_ONLY and math.isfinite(sum(vals)):
+        return vals
+    return [_number(v) for v in vals]
+
+
 def check_pose(p, q) -> tuple:
     """``(position (3,), quaternion (4,) w,x,y,z)`` as float64 arrays, the
     quaternion normalised; :class:`BadMessage` unless SPEC §3 would read it
     (finite, within 1 km, a quaternion norm within [0.5, 2])."""
-    p = np.array([_number(v) for v in p], dtype=np.float64)
-    q = np.array([_number(v) for v in q], dtype=np.float64)
+    return _pose(_numbers(p), _numbers(q))
+
+
+def _pose(p, q) -> tuple:
+    """:func:`check_pose` of numbers already checked finite."""
     if math.hypot(*p) > MAX_DISTANCE_M:
         raise BadMessage("position more than 1 km from the origin")
     n = math.hypot(*q)
     if not QUAT_NORM_RANGE[0] <= n <= QUAT_NORM_RANGE[1]:
         raise BadMessage(f"quaternion norm {n:.3g} not within [0.5, 2]")
-    return p, q / n
+    return np.array(p, dtype=np.float64), np.array(q, dtype=np.float64) / n
 
 
 def unity_to_motion(p, q_xyzw) -> tuple:
@@ -284,6 +329,13 @@ class Packet:
 
 # --------------------------------------------------------------------------- VMC
 
+def _right_axis(head):
+    """The head's +X (the wearer's right) in motion space; ``head``: (position, quaternion)."""
+    from ..rotations import quat_to_matrix
+
+    return quat_to_matrix(np.asarray(head[1]))[:, 0]
+
+
 class HandAssignment:
     """Which VMC serial is which hand (see the module docstring). ``left`` /
     ``right``: serials given by the user (then trackers may be hands too)."""
@@ -294,7 +346,7 @@ class HandAssignment:
 
     def side(self, serial: str, kind: str, pos, head) -> int | None:
         """1 (left), 2 (right) or None (not a hand, or not yet known).
-        ``head``: the head's (position, rotation matrix) in motion space, or None."""
+        ``head``: the head's (position, quaternion) in motion space, or None."""
         if serial in self.sides:
             return self.sides[serial]
         if kind != VMC_CON or self.given and len(self.given) == 2:
@@ -303,7 +355,7 @@ class HandAssignment:
         name = serial.lower()
         guess = 1 if "left" in name else 2 if "right" in name else None
         if guess is None and head is not None:
-            right = float(np.dot(head[1][:, 0], np.asarray(pos) - head[0]))  # the head's +X: the wearer's right
+            right = float(np.dot(_right_axis(head), np.asarray(pos) - head[0]))
             if abs(right) >= HAND_SIDE_M:
                 guess = 2 if right > 0 else 1
         if guess is None or guess in taken:
@@ -319,7 +371,7 @@ class HandAssignment:
         (s0, p0), (s1, p1) = serials_pos
         if "left" in s0.lower() + s1.lower() or "right" in s0.lower() + s1.lower():
             return
-        x = head[1][:, 0]
+        x = _right_axis(head)
         r0, r1 = float(np.dot(x, np.asarray(p0) - head[0])), float(np.dot(x, np.asarray(p1) - head[0]))
         if r0 != r1:
             self.sides[s0], self.sides[s1] = (2, 1) if r0 > r1 else (1, 2)
@@ -334,11 +386,9 @@ class VmcDecoder:
     def __init__(self, left: str | None = None, right: str | None = None):
         self.hands = HandAssignment(left, right)
         self.head_serial = None
-        self.head = None  # the last head pose: (position, rotation matrix)
+        self.head = None  # the last head pose: (position, quaternion)
 
     def decode(self, messages) -> Packet:
-        from ..rotations import quat_to_matrix
-
         pk = Packet()
         hands = []  # (kind, serial, p, q) of this packet's controllers and trackers
         for address, args in messages:
@@ -347,16 +397,16 @@ class VmcDecoder:
                     pk.known += 1
                     if len(args) < 8 or not isinstance(args[0], str):
                         raise BadMessage(f"{address} needs a serial and 7 numbers")
-                    nums = [_number(v) for v in args[1:8]]
+                    nums = _numbers(args[1:8])
                     up, uq = unity_to_motion(nums[:3], nums[3:])
-                    p, q = check_pose(up, uq)
+                    p, q = _pose(up, uq)
                     serial = args[0]
                     if address == VMC_HMD:
                         if self.head_serial is None:
                             self.head_serial = serial
                         if serial == self.head_serial:
                             pk.poses[0] = (p, q)
-                            self.head = (p, quat_to_matrix(q))
+                            self.head = (p, q)
                     else:
                         hands.append((address, serial, p, q))
                 elif address == VMC_TIME:

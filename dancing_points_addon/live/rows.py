@@ -144,7 +144,7 @@ class Rows:
         self.arrival = np.empty(1024)  # this machine's clock when the row was made (for latency)
         self.raw = np.zeros(1024, dtype=bool)  # not yet as written
 
-    def append(self, t, pos, quat, arrival):
+    def _room(self) -> None:
         if self.n == len(self.time):
             m = 2 * self.n
             for name in ("time", "pos", "quat", "arrival", "raw"):
@@ -152,9 +152,25 @@ class Rows:
                 new = np.zeros((m,) + old.shape[1:], dtype=old.dtype)
                 new[:self.n] = old[:self.n]
                 setattr(self, name, new)
-        self.time[self.n], self.pos[self.n], self.quat[self.n], self.arrival[self.n] = t, pos, quat, arrival
-        self.raw[self.n] = True
-        self.n += 1
+
+    def stage(self, got) -> np.ndarray:
+        """Write the next row's devices (``got``: per device ``(position,
+        quaternion)``, or None: lost, NaN) without adding it yet; returns which
+        are whole (finite). :meth:`commit` adds it."""
+        self._room()
+        pos, quat = self.pos[self.n], self.quat[self.n]
+        for d, v in enumerate(got):
+            if v is None:
+                pos[d] = quat[d] = np.nan
+            else:
+                pos[d], quat[d] = v
+        return np.isfinite(pos).all(-1) & np.isfinite(quat).all(-1)
+
+    def commit(self, t, arrival) -> None:
+        """Add the row :meth:`stage` wrote, at ``t`` (arrived at ``arrival``)."""
+        n = self.n
+        self.time[n], self.arrival[n], self.raw[n] = t, arrival, True
+        self.n = n + 1
 
     def settle(self, rows=None) -> None:
         """Make the rows (indices; None: all so far) as written (:func:`as_written`), once each."""

@@ -292,18 +292,17 @@ class LiveSession:
             self.stream_meta.update(s.meta)
         if not s.poses:
             return
-        pos = np.full((3, 3), np.nan)
-        quat = np.full((3, 4), np.nan)
+        poses, last_dev, gap = s.poses, self._last_dev, self.options.gap_s
+        got = [None, None, None]
         for d in range(3):
-            if d in s.poses:
-                v = s.poses[d]
-                self._last_dev[d] = None if v is None else (s.time, v)
+            if d in poses:
+                v = poses[d]
+                last_dev[d] = None if v is None else (s.time, v)
             else:
-                last = self._last_dev[d]
-                v = last[1] if last is not None and s.time - last[0] <= self.options.gap_s else None
-            if v is not None:
-                pos[d], quat[d] = v
-        self._row(s.time, pos, quat, s.datagrams)
+                last = last_dev[d]
+                v = last[1] if last is not None and s.time - last[0] <= gap else None
+            got[d] = v
+        self._row(s.time, got, s.datagrams)
 
     def _silence(self, now: float) -> None:
         if self.t_first is None:
@@ -311,27 +310,27 @@ class LiveSession:
         due = self._last_abs + (1.0 / NET_FPS if self._silent else self.options.gap_s)
         if now < due:
             return
-        pos = np.full((3, 3), np.nan)
-        quat = np.full((3, 4), np.nan)
+        got = [None, None, None]
         for d in range(3):
             last = self._last_dev[d]
             if last is not None and now - last[0] <= self.options.gap_s:
-                pos[d], quat[d] = last[1]
-        self._row(now, pos, quat, 0, silent=True)
+                got[d] = last[1]
+        self._row(now, got, 0, silent=True)
 
-    def _row(self, t_abs, pos, quat, datagrams, silent=False):
-        valid = np.isfinite(pos).all(-1) & np.isfinite(quat).all(-1)
+    def _row(self, t_abs, got, datagrams, silent=False):
+        """One row at ``t_abs``: ``got``, per device its (position, quaternion) or None (lost)."""
+        rows = self.rows
+        valid = rows.stage(got)
         if self.t_first is None:
             if not valid.all():
                 return  # the take starts where the dancer is first seen whole
             self.t_first = t_abs
         t = round(t_abs - self.t_first, 6)
-        rows = self.rows
         if rows.n and t <= rows.time[rows.n - 1]:
             if datagrams:
                 self.counters.add(late=datagrams, used=-datagrams)
             return
-        rows.append(t, pos, quat, t_abs)  # (as written when it is read: Rows.settle)
+        rows.commit(t, t_abs)  # (as written when it is read: Rows.settle)
         self._last_abs = t_abs
         self._silent = silent and not valid.any()
         if datagrams or not silent:
@@ -472,6 +471,8 @@ class LiveSession:
         rows = self.rows
         if c is None:
             return 0
+        if rows.n < 2 or rows.time[rows.n - 1] <= self.resampler.k / self.resampler.fps:
+            return 0  # no frame's time has passed (most rows of a fast sender)
         t0 = self.clock() if budget_s is not None else 0.0
         ks, idx, a = self.resampler.due(rows.time[:rows.n])
         if not len(ks):
