@@ -154,6 +154,7 @@ def cmd_live(args) -> int:
         raise
     session.gate = gate
     sink.append(session)
+    rx.hold = session.busy  # datagrams read between frames, not during one
     rx.start()
     session.start()
     tty = sys.stdout.isatty()

@@ -39,6 +39,7 @@ from .protocol import osc_messages
 GROUP_WINDOW_S = 0.002
 MAX_DATAGRAM = 65536
 RECEIVE_BUFFER = 1 << 20
+HOLD_POLL_S = 0.0005  # while the consumer makes a frame: how often datagrams are taken off the socket
 # A sample number this far back, or back at the start (0 to FRAME_FIRST), is a sender
 # that started again (or a stray number far ahead before it), not a late sample: a
 # sample arrives late by a few numbers (UDP reordering), 300 is 2.5 s at 120 Hz.
@@ -185,10 +186,20 @@ class SampleAssembler:
 class UdpReceiver:
     """A thread receiving on UDP ``host:port`` into a :class:`SampleAssembler`.
     :meth:`start` binds (a :class:`PortInUse` when the port is taken);
-    :meth:`stop` ends the thread and closes the socket."""
+    :meth:`stop` ends the thread and closes the socket.
 
-    def __init__(self, assembler: SampleAssembler, port: int, host: str = "0.0.0.0", clock=time.perf_counter):
+    ``hold``: a lock the consumer holds while it makes a frame (the live
+    session's :attr:`~.session.LiveSession.busy`). A datagram is stamped with
+    its arrival at once and read into the assembler when the lock is free
+    (those that came meanwhile together, the socket looked at every
+    :data:`HOLD_POLL_S`): a fast sender's datagrams then do not take the
+    interpreter from a frame being made, and a frame's latency does not grow
+    with the input rate."""
+
+    def __init__(self, assembler: SampleAssembler, port: int, host: str = "0.0.0.0", clock=time.perf_counter,
+                 hold=None):
         self.assembler = assembler
+        self.hold = hold if hold is not None else threading.Lock()
         self.port = int(port)
         self.host = host
         self.clock = clock
@@ -224,22 +235,36 @@ class UdpReceiver:
         self.thread.start()
 
     def _run(self) -> None:
-        sock, asm, clock = self.sock, self.assembler, self.clock
+        sock, asm, clock, hold = self.sock, self.assembler, self.clock, self.hold
+        stamped = []  # (datagram, arrival, sender) received while the hold was taken
         try:
             while not self._stop.is_set():
+                if stamped and hold.acquire(blocking=False):
+                    try:
+                        for data, t, addr in stamped:
+                            asm.datagram(data, t, addr)
+                        stamped.clear()
+                    finally:
+                        hold.release()
                 wait = asm.due(clock())
-                sock.settimeout(0.05 if wait is None else max(wait, 1e-4))
+                wait = 0.05 if wait is None else max(wait, 1e-4)
+                sock.settimeout(min(wait, HOLD_POLL_S) if stamped else wait)
                 try:
                     data, addr = sock.recvfrom(MAX_DATAGRAM)
                 except socket.timeout:
-                    asm.flush_due(clock())
+                    if not stamped:
+                        with hold:
+                            asm.flush_due(clock())
                     continue
                 except OSError:
                     if self._stop.is_set():
                         break
                     continue
-                asm.datagram(data, clock(), addr)
-            asm.flush()
+                stamped.append((data, clock(), addr))  # its arrival, at once, whether or not a frame is being made
+            with hold:
+                for data, t, addr in stamped:
+                    asm.datagram(data, t, addr)
+                asm.flush()
         except Exception as exc:  # noqa: BLE001 - kept for the loop to report; never a traceback in a thread
             self.error = exc
 

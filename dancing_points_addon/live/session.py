@@ -188,6 +188,7 @@ class LiveSession:
         self._stop = threading.Event()
         self.error = None
         self._lock = threading.Lock()  # feed/tick/finish: one at a time
+        self.busy = threading.Lock()  # held while a live frame is made (a receiver's ``hold``: it reads between)
         self._live_after = -math.inf  # rows that arrived before this clock time are caught up (a role switch)
         self.role_switch_s = None  # seconds the switch to the stream's role took (None: none made)
         self._role_warned = False
@@ -488,7 +489,11 @@ class LiveSession:
             _, pk, qk, ok = self.resampler.interp(k, rows.time[upper - 1], read.positions[j0], read.quats[j0],
                                                   rows.time[upper], read.positions[j1], read.quats[j1], a[m])
             live = upper >= self._catchup and rows.arrival[upper] >= self._live_after
-            self._step(k, pk, qk, ok, rows.arrival[upper] if live else None)
+            if live:  # (a catch-up's frames let the receiver read between them: no silence seen meanwhile)
+                with self.busy:
+                    self._step(k, pk, qk, ok, rows.arrival[upper])
+            else:
+                self._step(k, pk, qk, ok, None)
             self.resampler.k = k + 1
             if budget_s is not None and upper < self._catchup and self.clock() - t0 >= budget_s:
                 return len(ks) - m - 1
