@@ -503,34 +503,68 @@ def sample_datagrams(fmt: str, frame: int, clock: float, positions, quats, meta=
     (``/VMC/Ext/T``, the head, the two controllers, ``/VMC/Ext/OK``, our sample
     number; a lost device is left out). Ours: one bundle, or (``bundle=False``)
     one message each."""
-    msg = _Message
-    msgs = []
-    if fmt == "vmc":
-        msgs.append(msg(VMC_TIME, ("f", float(clock))))
-        for d, address in enumerate((VMC_HMD, VMC_CON, VMC_CON)):
-            p, q = positions[d], quats[d]
-            if not (np.isfinite(p).all() and np.isfinite(q).all()):
-                continue
-            up, uq = motion_to_unity(p, q)
-            msgs.append(msg(address, ("s", VMC_SERIALS[d]), *(("f", float(v)) for v in (*up, *uq))))
-        msgs.append(msg(VMC_OK, ("i", 1)))
-    elif fmt == "osc":
-        for d, name in enumerate(DEVICES):
-            vals = [*positions[d], *quats[d]]
-            if not all(math.isfinite(v) for v in vals):
-                vals = [math.nan] * 7
-            msgs.append(msg(OSC_PREFIX + name, *(("d", float(v)) for v in vals)))
-    else:
+    return _sample(fmt, frame, clock, device_messages(fmt, positions, quats), meta, bundle, announce)
+
+
+def device_messages(fmt: str, positions, quats) -> list:
+    """The messages (bytes) that carry one sample's device poses (see
+    :func:`sample_datagrams`): a message's address, type tags and serial are
+    written once (:func:`_device_prefixes`), its numbers packed in one call."""
+    vmc = fmt == "vmc"
+    if not vmc and fmt != "osc":
         raise ValueError(f"unknown stream format {fmt!r}")
-    msgs.append(msg(OSC_FRAME, ("i", int(frame) & 0x7FFFFFFF)))
-    for k, v in (meta or {}).items():
-        msgs.insert(0, msg(OSC_META, ("s", str(k)), ("s", str(v))))
+    prefixes, numbers = _device_prefixes(fmt)
+    out = []
+    for d in range(3):
+        vals = [float(v) for v in (*positions[d], *quats[d])]
+        finite = all(math.isfinite(v) for v in vals)
+        if vmc:
+            if not finite:
+                continue  # a lost device is left out
+            up, uq = motion_to_unity(vals[:3], vals[3:])
+            vals = [*up, *uq]
+        elif not finite:
+            vals = [math.nan] * 7
+        out.append(prefixes[d] + numbers.pack(*vals))
+    return out
+
+
+_PREFIXES = {}
+
+
+def _device_prefixes(fmt: str) -> tuple:
+    """Per device, the bytes of its message before the numbers, and the
+    ``struct`` of the numbers: what :class:`_Message` writes."""
+    key = (fmt, VMC_SERIALS)
+    got = _PREFIXES.get(key)
+    if got is None:
+        if fmt == "vmc":
+            heads = [_padded(a.encode("utf-8")) + _padded(b",sfffffff") + _padded(VMC_SERIALS[d].encode("utf-8"))
+                     for d, a in enumerate((VMC_HMD, VMC_CON, VMC_CON))]
+            got = heads, struct.Struct(">7f")
+        else:
+            got = [_padded((OSC_PREFIX + n).encode("utf-8")) + _padded(b",ddddddd") for n in DEVICES], \
+                struct.Struct(">7d")
+        _PREFIXES[key] = got
+    return got
+
+
+def _sample(fmt, frame, clock, devices, meta, bundle, announce) -> list:
+    msgs = []
     if announce:
-        msgs.insert(0, msg(OSC_META, ("s", META_ANNOUNCE), ("s", ",".join(announce))))
+        msgs.append(_Message(OSC_META, ("s", META_ANNOUNCE), ("s", ",".join(announce))).dgram)
+    for k, v in reversed(list((meta or {}).items())):  # (each put first in turn: the last key first)
+        msgs.append(_Message(OSC_META, ("s", str(k)), ("s", str(v))).dgram)
+    if fmt == "vmc":
+        msgs += [_Message(VMC_TIME, ("f", float(clock))).dgram, *devices, _Message(VMC_OK, ("i", 1)).dgram]
+    else:
+        msgs += devices
+    number = _Message(OSC_FRAME, ("i", int(frame) & 0x7FFFFFFF)).dgram
     if fmt == "osc" and not bundle:
         # the sample number first: it opens the sample's group at the receiver
-        return [m.dgram for m in [msgs[-1]] + msgs[:-1]]
-    return [_BUNDLE + _IMMEDIATELY + b"".join(_INT.pack(len(m.dgram)) + m.dgram for m in msgs)]
+        return [number] + msgs
+    msgs.append(number)
+    return [_BUNDLE + _IMMEDIATELY + b"".join(_INT.pack(len(m)) + m for m in msgs)]
 
 
 _IMMEDIATELY = b"\x00" * 7 + b"\x01"  # the OSC time tag "immediately" (python-osc's IMMEDIATELY)
