@@ -10,7 +10,7 @@ Mapping network (paper §4.3)
             dancer, the root relative to the leader's current root (4) and the
             three tracked points in that frame's own root (9)      -> 30 × 26 = 780
 
-Placement network (issue 13)
+Placement network
     input   the mapping's (195)
     output  the mapping's layout (780); the runtime reads her roots from it
 

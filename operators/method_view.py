@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""The method made visible (issue 17): what the networks see and predict, drawn
+"""The method made visible: what the networks see and predict, drawn
 in the scene beside a baked duet.
 
 :func:`build_method_view` adds to the duet collection a child collection

@@ -1,4 +1,4 @@
-"""The contact network (``models/contacts.onnx``, issue 13): both dancers' foot
+"""The contact network (``models/contacts.onnx``): both dancers' foot
 contacts at the current frame from the leader's past 0.5 s of three points (the
 mapping network's input). It times the follower's steps (her foot lock plants
 and lifts her feet as it says). Beside it the pose anchor (``models/pose_anchor.onnx``),

@@ -1,4 +1,4 @@
-"""Fuzzing the readers (issue 15): a few hundred random and mutated take files
+"""Fuzzing the readers: a few hundred random and mutated take files
 (CSV) and BVH files, with a fixed seed, through ``load_input`` in-process and a
 sample of them through ``python -m dancing_points_addon extract``.
 

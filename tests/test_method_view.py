@@ -1,4 +1,4 @@
-"""The method made visible (issue 17, ``operators/method_view.py``).
+"""The method made visible (``operators/method_view.py``).
 
 Core (no bpy): ``Synthesizer(record_predictions=True)`` records the mapping
 network's 1 s predictions of both dancers' three points and changes no output

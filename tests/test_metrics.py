@@ -1,5 +1,5 @@
 """SPEC §6 metrics that the runtime tests do not exercise: the pose with
-placement factored out (issue 13), on real frames of the CMU salsa data."""
+placement factored out, on real frames of the CMU salsa data."""
 import numpy as np
 import pytest
 

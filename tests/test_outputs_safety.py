@@ -1,4 +1,4 @@
-"""Outputs are safe (issue 15): two batches on one output folder, pairs of files
+"""Outputs are safe: two batches on one output folder, pairs of files
 written both or neither, reports and outputs never over an input, damaged
 models named in one line, failed or interrupted writes without a traceback or
 a leftover, worker and thread counts bounded, file names printed on one line,

@@ -1,4 +1,4 @@
-"""The preview (issue 17): the stage, the follow camera, timing, burn-in.
+"""The preview: the stage, the follow camera, timing, burn-in.
 
 The embedded sample take is imported and synthesised headless with the
 shipped models; then, on every frame of the take, the bones of both armatures

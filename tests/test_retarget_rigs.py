@@ -1,4 +1,4 @@
-"""Retargeting onto the rigs Blender users have (issue 16).
+"""Retargeting onto the rigs Blender users have.
 
 - bpy-free: the new conventions are detected (Rigify meta-rig, VRM as exported
   by VRoid, VRM 1.0 humanoid names), a rig of made-up names is mapped by its

@@ -187,7 +187,7 @@ def score(runs):
         agg["track"].append(M.tracking_error(pl, tl, m))
         agg["lead"].append(M.fullbody_error(pl, tl, m))
         agg["fol"].append(M.fullbody_error(pf, tf, m))
-        # issue 13: the pose with placement factored out, beside a mean-pose prior's (the
+        # the pose with placement factored out, beside a mean-pose prior's (the
         # train pose nearest the mean, carried along)
         agg["pose_l"].append(M.placed_pose_error(pl, tl, m))
         agg["pose_f"].append(M.placed_pose_error(pf, tf, m))

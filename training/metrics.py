@@ -52,7 +52,7 @@ def placed(pred, true):
 
 
 def placed_pose_error(pred, true, mask):
-    """Full-body error with placement factored out (issue 13): mean joint
+    """Full-body error with placement factored out: mean joint
     distance after :func:`placed`."""
     return fullbody_error(placed(pred, true), true, mask)
 

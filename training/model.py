@@ -199,7 +199,7 @@ class MappingNet(_Net):
 
 
 class PoseAnchorNet(MappingNet):
-    """The follower's pose anchor (issue 13): the mapping network's input (the
+    """The follower's pose anchor: the mapping network's input (the
     leader's past 0.5 s of three points) -> her lower body at the current frame
     in her own hip frame (``representation.hip_frame``), ``(B, 30)``. An MLP
     trained on the squared error. It knows nothing of her previous frames: the
@@ -214,7 +214,7 @@ class PoseAnchorNet(MappingNet):
 
 
 class ContactNet(nn.Module):
-    """Foot contacts of both dancers (issue 13): the mapping network's input (the
+    """Foot contacts of both dancers: the mapping network's input (the
     leader's past 0.5 s of three points) -> the contact probability of the SPEC §2
     foot points of the leader and of the follower at the current frame, ``(B, 8)``.
     A small MLP (ELU, dropout), binary cross-entropy, white noise on the
@@ -254,7 +254,7 @@ class ContactNet(nn.Module):
 
 
 class HipHeadingNet(ContactNet):
-    """The follower's hip heading (issue 13): the mapping network's input (the
+    """The follower's hip heading: the mapping network's input (the
     leader's past 0.5 s of three points) -> the probabilities of her hip heading
     *relative to his root's heading* at the current frame over
     ``follower.HIP_BINS`` bins of the full turn, ``(B, HIP_BINS)`` (softmax in the
