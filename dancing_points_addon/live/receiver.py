@@ -29,7 +29,10 @@ followed.
 from __future__ import annotations
 
 import errno
+import math
 import socket
+import struct
+import sys
 import threading
 import time
 
@@ -40,6 +43,11 @@ GROUP_WINDOW_S = 0.002
 MAX_DATAGRAM = 65536
 RECEIVE_BUFFER = 1 << 20
 HOLD_POLL_S = 0.0005  # while the consumer makes a frame: how often datagrams are taken off the socket
+# (where the kernel does not stamp them)
+_SO_TIMESTAMPNS = 35 if sys.platform.startswith("linux") else None  # SO_TIMESTAMPNS = SCM_TIMESTAMPNS (Linux)
+_TIMESPEC = struct.Struct("@qq")  # struct timespec (64-bit Linux)
+_ANCILLARY = 64
+MAX_STAMP_AGE_S = 1.0  # a kernel stamp older than this (a clock set meanwhile): taken as this old at most
 # A sample number this far back, or back at the start (0 to FRAME_FIRST), is a sender
 # that started again (or a stray number far ahead before it), not a late sample: a
 # sample arrives late by a few numbers (UDP reordering), 300 is 2.5 s at 120 Hz.
@@ -189,17 +197,19 @@ class UdpReceiver:
     :meth:`stop` ends the thread and closes the socket.
 
     ``hold``: a lock the consumer holds while it makes a frame (the live
-    session's :attr:`~.session.LiveSession.busy`). A datagram is stamped with
-    its arrival at once and read into the assembler when the lock is free
-    (those that came meanwhile together, the socket looked at every
-    :data:`HOLD_POLL_S`): a fast sender's datagrams then do not take the
-    interpreter from a frame being made, and a frame's latency does not grow
-    with the input rate."""
+    session's :attr:`~.session.LiveSession.busy`). A datagram that comes
+    meanwhile is read into the assembler once the lock is free, with the time
+    it arrived: the kernel's stamp (Linux), else the socket is looked at every
+    :data:`HOLD_POLL_S` and each datagram stamped as it is taken off. A fast
+    sender's datagrams then do not take the interpreter from a frame being
+    made, and a frame's latency does not grow with the input rate."""
 
     def __init__(self, assembler: SampleAssembler, port: int, host: str = "0.0.0.0", clock=time.perf_counter,
                  hold=None):
         self.assembler = assembler
         self.hold = hold if hold is not None else threading.Lock()
+        self.kernel_stamps = False  # the system stamps each datagram's arrival (Linux), set when bound
+        self._last_t = -math.inf
         self.port = int(port)
         self.host = host
         self.clock = clock
@@ -225,6 +235,12 @@ class UdpReceiver:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
         except OSError:
             pass
+        if _SO_TIMESTAMPNS is not None and hasattr(sock, "recvmsg"):
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                self.kernel_stamps = True
+            except OSError:
+                pass
         self.port = sock.getsockname()[1]  # the port actually bound (port 0: any free one)
         self.sock = sock
 
@@ -235,22 +251,27 @@ class UdpReceiver:
         self.thread.start()
 
     def _run(self) -> None:
-        sock, asm, clock, hold = self.sock, self.assembler, self.clock, self.hold
-        stamped = []  # (datagram, arrival, sender) received while the hold was taken
+        sock, asm, clock, hold, kernel = self.sock, self.assembler, self.clock, self.hold, self.kernel_stamps
+        stamped = []  # (datagram, arrival, sender) not yet read into the assembler
         try:
             while not self._stop.is_set():
-                if stamped and hold.acquire(blocking=False):
-                    try:
-                        for data, t, addr in stamped:
-                            asm.datagram(data, t, addr)
-                        stamped.clear()
-                    finally:
-                        hold.release()
+                if stamped:
+                    # the kernel stamps the datagrams that come meanwhile: wait for the frame, not a moment longer
+                    # (without its stamps they are taken off the socket every HOLD_POLL_S, stamped as they are)
+                    if hold.acquire(timeout=0.05) if kernel else hold.acquire(blocking=False):
+                        try:
+                            for data, t, addr in stamped:
+                                asm.datagram(data, t, addr)
+                            stamped.clear()
+                        finally:
+                            hold.release()
+                    elif kernel:
+                        continue
                 wait = asm.due(clock())
                 wait = 0.05 if wait is None else max(wait, 1e-4)
                 sock.settimeout(min(wait, HOLD_POLL_S) if stamped else wait)
                 try:
-                    data, addr = sock.recvfrom(MAX_DATAGRAM)
+                    got = self._receive(sock, clock)
                 except socket.timeout:
                     if not stamped:
                         with hold:
@@ -260,13 +281,32 @@ class UdpReceiver:
                     if self._stop.is_set():
                         break
                     continue
-                stamped.append((data, clock(), addr))  # its arrival, at once, whether or not a frame is being made
+                stamped.append(got)
             with hold:
                 for data, t, addr in stamped:
                     asm.datagram(data, t, addr)
                 asm.flush()
         except Exception as exc:  # noqa: BLE001 - kept for the loop to report; never a traceback in a thread
             self.error = exc
+
+    def _receive(self, sock, clock) -> tuple:
+        """One datagram: ``(data, arrival on clock, sender)``. The arrival is
+        the kernel's stamp where the system gives one (its age subtracted from
+        ``clock`` now: a datagram read late keeps its time), else the moment
+        it is read. Never before the previous datagram's."""
+        if self.kernel_stamps:
+            data, anc, _flags, addr = sock.recvmsg(MAX_DATAGRAM, _ANCILLARY)
+            now, real = clock(), time.time()
+            t = now
+            for level, kind, cdata in anc:
+                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(cdata) == _TIMESPEC.size:
+                    sec, nsec = _TIMESPEC.unpack(cdata)
+                    t = now - min(max(real - (sec + nsec * 1e-9), 0.0), MAX_STAMP_AGE_S)
+        else:
+            data, addr = sock.recvfrom(MAX_DATAGRAM)
+            t = clock()
+        t = self._last_t = max(t, self._last_t)
+        return data, t, addr
 
     @property
     def alive(self) -> bool:
