@@ -72,12 +72,10 @@ class FootLockOptions:
                              f"out of range in {self!r}")
 
 
-# The tracked dancer's foot lock (val, the shipped networks; models/README.md). Against the
+# The tracked dancer's foot lock (chosen on val; figures in models/README.md). Against the
 # defaults: a lock holds until its predicted point is 20 cm away, not 15; a release is a catch-up
-# step 8-12 cm high that lifts the ball too; a free foot moving fast is lifted 5 cm off its floor.
-# On a body other than the training leader's his feet sit lower against the dancer's own floor,
-# and a step 6 cm high that left the ball down swept it along the floor: skating on her points as a
-# leader take 27.8 -> 12.0 cm/s (ground truth 17.9), role=follower 28.7 -> 7.7 (17.9).
+# step 8-12 cm high that lifts the ball too; a free foot moving fast is lifted 5 cm off its floor
+# (on bodies other than the training leader's his feet sit lower against the dancer's own floor).
 TRACKED_FOOT_LOCK = FootLockOptions(max_drift=0.2, step_height=0.08, step_max=0.12, clearance=0.05, lift_ball=True)
 
 

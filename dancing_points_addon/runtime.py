@@ -50,8 +50,7 @@ KIN_HEIGHT, KIN_SPEED, KIN_FLOOR_RISE = 0.02, 1.5, 0.001
 # probabilities of him beside his tracker's contacts and the kinematic evidence (the highest of
 # the three), and plants his feet at most TRACKED_LOCK_FLOOR above his floor levels (the contact
 # network's, training scale), which his swing clearance lifts from. The tracker's contacts alone
-# missed steps on bodies it never saw (val contact F1 of the evidence, her points as a leader
-# take: tracker 0.55, contact network 0.64).
+# missed steps on bodies it never saw (models/README.md).
 TRACKED_LOCK_FLOOR = 0.01
 DEFAULT_FLOOR_LEVELS = (0.07, 0.04, 0.07, 0.04)  # ankle, ball (m): without the contact network's levels
 # The tracked dancer's head point reaches its device: before his foot lock, his body moves this share

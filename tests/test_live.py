@@ -585,6 +585,46 @@ def _live_threads():
     return [t.name for t in threading.enumerate() if t.name.startswith("dancing_points_live")]
 
 
+@pytest.mark.parametrize("kernel", [True, False])
+def test_datagrams_that_come_during_a_frame_wait_and_keep_their_arrival(take, kernel):
+    """While the consumer holds the receiver's ``hold`` (a live frame being
+    made) no sample is read; once it is free every sample comes, in order,
+    with the time it arrived (the kernel's stamp, or the socket looked at
+    every 0.5 ms): 5 ms apart as sent, not bunched at the release."""
+    got = []
+    hold = threading.Lock()
+    rx = UdpReceiver(SampleAssembler(P.VmcDecoder(), got.append, Counters()), 0, "127.0.0.1", hold=hold)
+    rx.open()
+    if not kernel:
+        rx.kernel_stamps = False
+    elif not rx.kernel_stamps:
+        pytest.skip("this system does not stamp datagrams")
+    rx.start()
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sent = []
+    try:
+        with hold:
+            for i in range(20):
+                sent.append(time.perf_counter())
+                tx.sendto(P.sample_datagrams("vmc", i, i / 200, take.positions[i], take.quats[i])[0],
+                          ("127.0.0.1", rx.port))
+                time.sleep(0.005)
+            time.sleep(0.05)
+            assert got == []  # nothing read while the frame is being made
+        deadline = time.perf_counter() + 5.0
+        while len(got) < 20 and time.perf_counter() < deadline:
+            time.sleep(0.005)
+    finally:
+        tx.close()
+        rx.stop()
+    assert [s.frame for s in got] == list(range(20))
+    stamps, sent = np.array([s.time for s in got]), np.array(sent)
+    assert np.all(np.diff(stamps) > 0)
+    # each within 5 ms of its send (read at the release, they would be 50-150 ms late)
+    assert np.abs(stamps - sent).max() < 0.005, (stamps - sent)
+    assert abs(np.median(np.diff(stamps)) - np.median(np.diff(sent))) < 0.001
+
+
 def test_receiver_stops_cleanly_and_a_taken_port_is_one_clear_error():
     rx = UdpReceiver(SampleAssembler(P.VmcDecoder(), lambda s: None), 0, "127.0.0.1")
     rx.start()
