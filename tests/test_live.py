@@ -625,6 +625,45 @@ def test_datagrams_that_come_during_a_frame_wait_and_keep_their_arrival(take, ke
     assert abs(np.median(np.diff(stamps)) - np.median(np.diff(sent))) < 0.001
 
 
+def test_a_pause_while_the_clocks_are_read_does_not_date_a_datagram_early(take):
+    """The kernel's stamp is put on the receiver's clock by reading both
+    clocks; a thread paused between the two readings (a busy machine) must not
+    date the datagram by the pause, nor give two datagrams one time (the
+    session would drop the second as late)."""
+    rx = UdpReceiver(SampleAssembler(P.VmcDecoder(), lambda s: None, Counters()), 0, "127.0.0.1")
+    rx.open()
+    if not rx.kernel_stamps:
+        rx.stop()
+        pytest.skip("this system does not stamp datagrams")
+    pause = [False]
+
+    def clock():
+        v = time.perf_counter()
+        if pause[0]:
+            pause[0] = False
+            time.sleep(0.01)  # read, then paused before the system clock is read
+        return v
+
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        rx.sock.settimeout(2.0)
+        stamps, sent = [], []
+        for i, paused in enumerate([False, True, False, True]):
+            sent.append(time.perf_counter())
+            tx.sendto(P.sample_datagrams("vmc", i, i / 200, take.positions[i], take.quats[i])[0],
+                      ("127.0.0.1", rx.port))
+            time.sleep(0.002)
+            pause[0] = paused
+            stamps.append(rx._receive(rx.sock, clock)[1])
+    finally:
+        tx.close()
+        rx.stop()
+    err = np.array(stamps) - np.array(sent)
+    print("stamp minus send (ms):", np.round(1000 * err, 3))
+    assert np.all(np.diff(stamps) > 0)
+    assert np.abs(err).max() < 0.003, err  # dated by the pause: 10 ms early
+
+
 def test_receiver_stops_cleanly_and_a_taken_port_is_one_clear_error():
     rx = UdpReceiver(SampleAssembler(P.VmcDecoder(), lambda s: None), 0, "127.0.0.1")
     rx.start()

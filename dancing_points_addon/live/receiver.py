@@ -48,6 +48,11 @@ _SO_TIMESTAMPNS = 35 if sys.platform.startswith("linux") else None  # SO_TIMESTA
 _TIMESPEC = struct.Struct("@qq")  # struct timespec (64-bit Linux)
 _ANCILLARY = 64
 MAX_STAMP_AGE_S = 1.0  # a kernel stamp older than this (a clock set meanwhile): taken as this old at most
+# The system clock (the kernel's stamps) is put on the receiver's clock by one pair of
+# readings taken within this many seconds of each other; a pair further apart (the
+# thread was paused between them) keeps the offset read before.
+STAMP_PAIR_S = 50e-6
+STAMP_STEP_S = 2e-6  # a datagram's arrival is at least this after the one before (times are kept to the microsecond)
 # A sample number this far back, or back at the start (0 to FRAME_FIRST), is a sender
 # that started again (or a stray number far ahead before it), not a late sample: a
 # sample arrives late by a few numbers (UDP reordering), 300 is 2.5 s at 120 Hz.
@@ -210,6 +215,7 @@ class UdpReceiver:
         self.hold = hold if hold is not None else threading.Lock()
         self.kernel_stamps = False  # the system stamps each datagram's arrival (Linux), set when bound
         self._last_t = -math.inf
+        self._offset = None  # the receiver's clock minus the system's (kernel stamps)
         self.port = int(port)
         self.host = host
         self.clock = clock
@@ -291,22 +297,35 @@ class UdpReceiver:
 
     def _receive(self, sock, clock) -> tuple:
         """One datagram: ``(data, arrival on clock, sender)``. The arrival is
-        the kernel's stamp where the system gives one (its age subtracted from
-        ``clock`` now: a datagram read late keeps its time), else the moment
-        it is read. Never before the previous datagram's."""
+        the kernel's stamp where the system gives one (put on ``clock`` by
+        :meth:`_clock_offset`: a datagram read late keeps its time), else the
+        moment it is read. Always after the previous datagram's
+        (:data:`STAMP_STEP_S`): two samples never share a time."""
         if self.kernel_stamps:
             data, anc, _flags, addr = sock.recvmsg(MAX_DATAGRAM, _ANCILLARY)
-            now, real = clock(), time.time()
+            now, offset = self._clock_offset(clock)
             t = now
             for level, kind, cdata in anc:
                 if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(cdata) == _TIMESPEC.size:
                     sec, nsec = _TIMESPEC.unpack(cdata)
-                    t = now - min(max(real - (sec + nsec * 1e-9), 0.0), MAX_STAMP_AGE_S)
+                    t = min(max(sec + nsec * 1e-9 + offset, now - MAX_STAMP_AGE_S), now)
         else:
             data, addr = sock.recvfrom(MAX_DATAGRAM)
             t = clock()
-        t = self._last_t = max(t, self._last_t)
+        t = self._last_t = max(t, self._last_t + STAMP_STEP_S)
         return data, t, addr
+
+    def _clock_offset(self, clock) -> tuple:
+        """``(now on clock, clock minus the system clock)``. The offset is read
+        between two readings of ``clock`` no more than :data:`STAMP_PAIR_S`
+        apart; when the thread was paused between them the last good offset
+        stands (a pause there would otherwise date the datagram too early)."""
+        a = clock()
+        real = time.time()
+        b = clock()
+        if b - a <= STAMP_PAIR_S or self._offset is None:
+            self._offset = 0.5 * (a + b) - real
+        return b, self._offset
 
     @property
     def alive(self) -> bool:
