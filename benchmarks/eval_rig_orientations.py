@@ -75,7 +75,7 @@ def main(argv=None):
     from support.ext_util import import_from_extension
     from support.helpers import cut
     from support.rig_builder import build_rig, export_rig
-    from dancing_points_addon.formats.inputs import load_input
+    from dancing_points_addon.inputs import load_input
     from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
     from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
     from training.evaluate import test_segments

@@ -86,7 +86,7 @@ def song_from_args(take, args):
 
 
 def load_input_from_args(args):
-    from .formats.inputs import load_input
+    from .inputs import load_input
     return load_input(args.input, asf=args.asf, input_fps=args.input_fps, height=args.height,
                       role=getattr(args, "role", None))
 
@@ -102,7 +102,7 @@ def cmd_extract(args) -> int:
     check_not_input(args, [args.output])
     if args.devices == "openxr":
         from .formats.devices import offsets_for
-        from .formats.inputs import load_headset_input
+        from .inputs import load_headset_input
 
         offsets = offsets_for({}, args.head_offset, args.hand_offset)
         take = load_headset_input(args.input, asf=args.asf, input_fps=args.input_fps, height=args.height,

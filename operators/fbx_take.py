@@ -47,7 +47,7 @@ def main(argv) -> int:
         bpy.ops.wm.read_homefile(use_empty=True)
         take_rig = importlib.import_module(module + ".operators.take_rig")
         fbx = importlib.import_module(module + ".dancing_points_addon.formats.fbx")
-        check_take = importlib.import_module(module + ".dancing_points_addon.formats.inputs").check_take
+        check_take = importlib.import_module(module + ".dancing_points_addon.inputs").check_take
         check_rate = importlib.import_module(module + ".dancing_points_addon.formats.limits").check_rate
         path = os.path.abspath(args.input)
         fps = check_rate(path, args.input_fps) if args.input_fps > 0 else 0.0

@@ -2,7 +2,7 @@
 """Import a take (``bpy.ops.dancing_points.import_take``, SPEC §8).
 
 The file is read as a :class:`Take` (:func:`load_any`): ``.csv`` takes and CMU
-``.amc`` files by the core (``formats.inputs.load_input``), ``.bvh`` and
+``.amc`` files by the core (``inputs.load_input``), ``.bvh`` and
 ``.fbx`` files through Blender's own importers (:mod:`.take_rig`). The take
 becomes a collection of three keyframed empties (:mod:`.take_collection`,
 which also reads it back for synthesis); Keep Source Body adds the file's full
@@ -20,7 +20,7 @@ from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon.errors import InputError, error_message
 from ..dancing_points_addon.formats.devices import META_TURN_KEYS, parse_turn
 from ..dancing_points_addon.formats.files import regular_file
-from ..dancing_points_addon.formats.inputs import check_take, load_input
+from ..dancing_points_addon.inputs import check_take, load_input
 from ..dancing_points_addon.formats.limits import check_height, check_rate
 from ..dancing_points_addon.formats.rig_rest import rig_problem_line
 from ..dancing_points_addon.formats.take import ORIENTATIONS_NONE, ORIENTATIONS_PROBLEM_KEY, take_orientations_usable

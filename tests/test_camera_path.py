@@ -9,7 +9,7 @@ import pytest
 from conftest import MODELS, ROOT
 from dancing_points_addon import blender_math as bm
 from dancing_points_addon import camera_path as cp
-from dancing_points_addon.formats.inputs import load_input
+from dancing_points_addon.inputs import load_input
 from dancing_points_addon.resample import resample_take
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import JOINT_NAMES

@@ -8,7 +8,7 @@ from dancing_points_addon.calibration import ORIENTATION_SPEED_LIMIT, calibrate,
 from dancing_points_addon.duet import save_npz
 from dancing_points_addon.errors import InputError
 from dancing_points_addon.formats.devices import DeviceOffsets, DeviceTurns, mirror_turn, parse_turn
-from dancing_points_addon.formats.inputs import HAND_BONES
+from dancing_points_addon.inputs import HAND_BONES
 from dancing_points_addon.formats.take import Take, read_take, write_take
 from dancing_points_addon.rotations import matrix_to_quat, quat_to_matrix
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer

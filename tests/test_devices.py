@@ -11,7 +11,7 @@ from dancing_points_addon.calibration import (TRAIN_HEIGHT, apply_calibration, c
                                               height_from_head)
 from dancing_points_addon.errors import InputError
 from dancing_points_addon.formats.devices import DeviceOffsets, openxr_to_points
-from dancing_points_addon.formats.inputs import HAND_BONES, load_input
+from dancing_points_addon.inputs import HAND_BONES, load_input
 from dancing_points_addon.formats.take import Take, read_take
 from dancing_points_addon.representation import DEVICE_FROM_HEAD
 from dancing_points_addon.resample import resample_take

@@ -145,3 +145,22 @@ def test_training_only_code_is_not_in_the_core():
     names = set(_modules(CORE))
     for mod in ("dataset", "metrics", "build_extension"):
         assert not any(n.split(".")[-1] == mod for n in names), mod
+
+
+# What the file layer may read: itself, the errors, the body's maths and the song's checks
+# (never the synthesis: resampling, calibration, the networks, the runtime).
+FORMATS_MAY_IMPORT = ("formats", "errors", "rotations", "skeleton", "audio")
+
+
+def test_formats_import_nothing_of_the_synthesis():
+    """``formats/`` is a leaf of the core: it reads and writes files, and any
+    module above it (inputs, calibration, resampling, the runtime) may use it
+    without a loop back."""
+    core = _modules(CORE)
+    for name, path in core.items():
+        if not name.startswith(CORE + ".formats"):
+            continue
+        for dep in _imports(name, path):
+            if dep in core and dep.startswith(CORE + "."):
+                top = dep[len(CORE) + 1:].split(".")[0]
+                assert top in FORMATS_MAY_IMPORT, (name, dep)

@@ -23,7 +23,7 @@ import pytest
 
 from conftest import MODELS, SALSA
 from dancing_points_addon.features import FUTURE
-from dancing_points_addon.formats.inputs import load_input
+from dancing_points_addon.inputs import load_input
 from dancing_points_addon.resample import resample_take
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import FEET

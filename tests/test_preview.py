@@ -24,7 +24,7 @@ from conftest import MODELS, ROOT  # noqa: E402
 from support.ext_util import import_from_extension  # noqa: E402
 
 from dancing_points_addon import blender_math as bm  # noqa: E402
-from dancing_points_addon.formats.inputs import load_input  # noqa: E402
+from dancing_points_addon.inputs import load_input  # noqa: E402
 from dancing_points_addon.resample import resample_take  # noqa: E402
 from dancing_points_addon.skeleton import JOINT_NAMES  # noqa: E402
 

@@ -23,7 +23,7 @@ from dancing_points_addon.formats.files import read_text
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.bvh import parse_bvh, write_bvh
 from dancing_points_addon.formats.limits import MAX_DURATION_S
-from dancing_points_addon.formats.inputs import check_take, load_input
+from dancing_points_addon.inputs import check_take, load_input
 from dancing_points_addon.formats.take import COLUMNS, Take, parse_take_bytes, read_take, take_from_motion, write_take
 from dancing_points_addon.resample import output_times, resample_take
 from dancing_points_addon.skeleton import Motion

@@ -148,7 +148,7 @@ def test_core_and_blender_readers_give_the_csv_orientations(rigs, naming):
     import bpy
     from support import blender_scene_util as bsu
     from support.ext_util import import_from_extension
-    from dancing_points_addon.formats.inputs import load_input
+    from dancing_points_addon.inputs import load_input
     from dancing_points_addon.formats.take import read_take
 
     take_rig = import_from_extension("operators.take_rig")
@@ -258,7 +258,7 @@ def test_an_amc_of_an_a_pose_asf(tmp_path):
 
     from support.helpers import trim_amc
     from dancing_points_addon.formats.asf_amc import load_amc
-    from dancing_points_addon.formats.inputs import load_input
+    from dancing_points_addon.inputs import load_input
     from dancing_points_addon.rotations import quat_to_matrix
 
     if not SALSA.exists():

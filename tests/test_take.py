@@ -13,7 +13,7 @@ from dancing_points_addon.resample import output_times, resample_motion, resampl
 from dancing_points_addon.rotations import (axis_rotation, matrix_to_quat, quat_to_matrix,
                                             rotation_angle)
 from dancing_points_addon.skeleton import HEAD_BONE, TRACKED, Motion
-from dancing_points_addon.formats.inputs import load_input
+from dancing_points_addon.inputs import load_input
 from dancing_points_addon.formats.take import COLUMNS, HEAD_DEVICE_OFFSET, Take, read_take, take_from_motion, write_take
 
 def random_take(n=50, seed=0, gaps=True):

@@ -31,7 +31,7 @@ from dancing_points_addon.skeleton import HEAD_BONE, TRACKED, WRISTS, bone_lengt
 from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
 from dancing_points_addon.calibration import TRAIN_HEIGHT, headset_take, height_from_head
 from dancing_points_addon.formats.devices import DeviceOffsets
-from dancing_points_addon.formats.inputs import HAND_BONES
+from dancing_points_addon.inputs import HAND_BONES
 
 SCORE_FROM = 1.0  # seconds
 

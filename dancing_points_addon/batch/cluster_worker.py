@@ -177,7 +177,7 @@ def core_convert(job, progress):
 
     from ..formats.bvh import bvh_text
     from ..formats.files import write_npz
-    from ..formats.inputs import load_input
+    from ..inputs import load_input
     from ..duet import duet_motions
     from ..runtime import Synthesizer
     from .options import job_song, synthesis_options

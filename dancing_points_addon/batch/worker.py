@@ -51,7 +51,7 @@ class CoreConverter:
     """npz / bvh through the bpy-free core; the networks are loaded once."""
 
     def __call__(self, job, progress):
-        from ..formats.inputs import load_input
+        from ..inputs import load_input
         from ..runtime import Synthesizer
 
         o = job["options"]

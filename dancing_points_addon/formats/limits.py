@@ -1,6 +1,6 @@
 """Bounds on what an input may be (a few hours of a dancer at a plausible rate
 and height), checked by every reader before anything the size of the take's
-duration is allocated, and by :func:`~.inputs.check_take`. Imports no numpy:
+duration is allocated, and by :func:`~..inputs.check_take`. Imports no numpy:
 :mod:`..argtypes` shares these bounds before numpy may load (the benchmark's
 one BLAS thread is set then)."""
 from __future__ import annotations

@@ -9,8 +9,8 @@ be wrong. Writing
 onto the target, so a failure never leaves a half-written take behind.
 
 Any supported input (take ``.csv``, CMU ``.amc``, ``.bvh``) becomes a take
-through :func:`~.inputs.load_input`, and every take meets the rules of
-:func:`~.inputs.check_take`; the bounds are in :mod:`.limits`.
+through :func:`~..inputs.load_input`, and every take meets the rules of
+:func:`~..inputs.check_take`; the bounds are in :mod:`.limits`.
 
 Over 500 lines: the take format is one unit, its :class:`Take`, reader, writer
 and extraction (the writer's text must read back as the reader reads it), and

@@ -61,7 +61,7 @@ def stream_rate(text: str) -> float:
 
 
 def cmd_stream(args) -> int:
-    from ..formats.inputs import load_input
+    from ..inputs import load_input
     from .stream import stream_take
 
     take = load_input(args.input)

@@ -9,14 +9,14 @@ import sys
 
 import numpy as np
 
-from ..errors import InputError
-from .files import regular_file
-from .limits import MAX_ABS_TIME_S, MAX_GAP_S, check_duration, check_height, check_rate
-from ..resample import NET_FPS, resample_plan, tracked_after_resampling
-from .rig_rest import asf_rest_corrections, rig_problem_line
-from .take import (DEVICES, MAX_DISTANCE_M, ORIENTATIONS_PROBLEM_KEY, Take, read_take, take_from_motion,
+from .errors import InputError
+from .formats.files import regular_file
+from .formats.limits import MAX_ABS_TIME_S, MAX_GAP_S, check_duration, check_height, check_rate
+from .resample import NET_FPS, resample_plan, tracked_after_resampling
+from .formats.rig_rest import asf_rest_corrections, rig_problem_line
+from .formats.take import (DEVICES, MAX_DISTANCE_M, ORIENTATIONS_PROBLEM_KEY, Take, read_take, take_from_motion,
                    take_from_tracked)
-from ..skeleton import HEAD_BONE, JOINT_INDEX, WRISTS
+from .skeleton import HEAD_BONE, JOINT_INDEX, WRISTS
 
 HAND_BONES = (JOINT_INDEX["lhand"], JOINT_INDEX["rhand"])  # what the grips of openxr devices are rigid on
 
@@ -96,7 +96,7 @@ def load_headset_input(path, asf=None, input_fps=None, height=None, offsets=None
     BVH) with the hand bones' own rotations, from a take or another BVH with
     its hand orientations taken as the hands'. A take already ``openxr`` is
     returned as it is."""
-    from ..calibration import headset_take
+    from .calibration import headset_take
 
     take, hands = _load(path, asf, input_fps, height, want_hands=True, role=role)
     if take.meta.get("devices") == "openxr":
@@ -146,12 +146,12 @@ def _load(path, asf=None, input_fps=None, height=None, want_hands=False, role=No
                                    what=f"the take ({take.n_frames} rows at {input_fps:g} Hz)")
                     take.time = take.time[0] + np.arange(take.n_frames) / input_fps
             elif ext == ".fbx":
-                from .fbx import load_fbx
+                from .formats.fbx import load_fbx
                 take = _checked_motion_take(path, load_fbx(path, input_fps, role))
             elif ext == ".amc":
                 if asf is not None:
                     regular_file(os.fspath(asf), "an ASF file", missing="no such ASF file")
-                from .asf_amc import load_amc
+                from .formats.asf_amc import load_amc
                 motion = load_amc(path, asf, fps=input_fps)
                 take = _checked_motion_take(path, _amc_take(motion), ext)
                 hands = motion.rotations[:, list(HAND_BONES)] if want_hands else None
@@ -187,10 +187,10 @@ def _checked_motion_take(path, take: Take, ext=".fbx") -> Take:
         r, d = (int(x) for x in np.argwhere(bad)[0])
         line = None
         if ext == ".amc":
-            from .asf_amc import frame_line
+            from .formats.asf_amc import frame_line
             line = frame_line(path, r)
         elif ext == ".bvh":
-            from .bvh_parse import frame_line
+            from .formats.bvh_parse import frame_line
             line = frame_line(path, r)
         raise InputError(path, f"{DEVICES[d]} point of frame {r + 1} is out of range (more than "
                                f"{MAX_DISTANCE_M:g} m from the origin, or not a finite number)", line)
@@ -214,7 +214,7 @@ def _amc_take(motion) -> Take:
 
 def _take_from_bvh(path, input_fps=None, want_hands=False):
     """The take of a BVH file, and (``want_hands``, CMU naming) its hand bones' rotations."""
-    from . import bvh
+    from .formats import bvh
 
     data = bvh.parse_bvh(path, input_fps=input_fps)
     if want_hands and bvh.detect_naming(data) == "cmu":
