@@ -36,7 +36,7 @@ from ..dancing_points_addon import blender_math as bm
 from ..dancing_points_addon.errors import UserError, error_message
 from ..dancing_points_addon.formats.limits import FLOOR_RANGE_M, HEIGHT_RANGE_M
 from ..dancing_points_addon.live import OSC_PORT, ROLES, VMC_PORT
-from ..dancing_points_addon.live.receiver import FOLLOW_RESTART_S
+from ..dancing_points_addon.live.senders import FOLLOW_RESTART_S
 from ..dancing_points_addon.live.xr import read_xr_state, xr_to_motion
 from . import bake
 from .song import SongPlayer, scene_song
@@ -178,7 +178,8 @@ def start(context, settings):
         raise UserError("a live session is already running: stop it first")
     _LAST_ERROR = ""
     from ..dancing_points_addon.live.protocol import decoder_for
-    from ..dancing_points_addon.live.receiver import Counters, SenderGate, UdpReceiver, parse_sender
+    from ..dancing_points_addon.live.receiver import Counters, UdpReceiver
+    from ..dancing_points_addon.live.senders import SenderGate, parse_sender
     from ..dancing_points_addon.live.session import LiveSession
     from .synthesize import _preferences, make_synthesizer, model_dir_choice
 

@@ -28,7 +28,8 @@ from dancing_points_addon.errors import UserError
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.take import Take, parse_take_bytes, read_take, take_from_motion, take_to_text
 from dancing_points_addon.live import protocol as P
-from dancing_points_addon.live.receiver import Counters, PortInUse, Sample, SampleAssembler, SenderGate, UdpReceiver
+from dancing_points_addon.live.receiver import Counters, PortInUse, Sample, SampleAssembler, UdpReceiver
+from dancing_points_addon.live.senders import SenderGate
 from dancing_points_addon.live.rows import CausalResampler, as_read
 from dancing_points_addon.live.session import LiveOptions, LiveSession
 from dancing_points_addon.live.stream import stream_rows, stream_take

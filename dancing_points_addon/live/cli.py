@@ -18,7 +18,7 @@ from ..argtypes import (CLI_SIGNALS, EXIT_OK, add_audio_arguments, add_calibrati
 from ..errors import InputError, UserError
 from ..formats.files import check_output_path
 from . import OSC_PORT, VMC_PORT
-from .receiver import FOLLOW_RESTART_S, parse_sender
+from .senders import FOLLOW_RESTART_S, parse_sender
 
 STATUS_EVERY_S = 0.5  # on a terminal the status line is redrawn this often
 STATUS_LOG_EVERY_S = 5.0  # elsewhere a status line is printed this often
@@ -36,7 +36,7 @@ def seconds_or_zero(text: str) -> float:
 
 
 def sender_address(text: str) -> str:
-    """``ADDR[:PORT]``, checked (:func:`.receiver.parse_sender`)."""
+    """``ADDR[:PORT]``, checked (:func:`.senders.parse_sender`)."""
     try:
         parse_sender(text)
     except UserError as exc:
@@ -125,7 +125,8 @@ def cmd_live(args) -> int:
     from ..formats.take import take_to_text
     from ..nets import check_models
     from .protocol import decoder_for
-    from .receiver import Counters, SenderGate, UdpReceiver
+    from .receiver import Counters, UdpReceiver
+    from .senders import SenderGate
     from .session import LiveOptions, LiveSession, ignored_senders_text
 
     out, csv = _outputs(args.output)

@@ -135,7 +135,7 @@ class LiveResult:
 
 
 def ignored_senders_text(ignored) -> str:
-    """``ignored 2 other senders (1,234 packets)`` of :meth:`~.receiver.SenderGate.ignored`'s list."""
+    """``ignored 2 other senders (1,234 packets)`` of :meth:`~.senders.SenderGate.ignored`'s list."""
     n = len(ignored)
     return (f"ignored {n} other sender{'s' if n != 1 else ''} "
             f"({sum(p for _, p in ignored):,} packets)")
