@@ -27,6 +27,7 @@ from dancing_points_addon.calibration import headset_take
 from dancing_points_addon.errors import UserError
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.take import Take, parse_take_bytes, read_take, take_from_motion, take_to_text
+from dancing_points_addon.live import osc as O
 from dancing_points_addon.live import protocol as P
 from dancing_points_addon.live.receiver import Counters, PortInUse, Sample, SampleAssembler, UdpReceiver
 from dancing_points_addon.live.senders import SenderGate
@@ -189,22 +190,22 @@ def test_vmc_decoder_guesses_hands_by_side_then_keeps_them():
     head = (np.array([0.0, 1.6, 0.0]), FACING_Z)
     left = (np.array([0.3, 1.1, 0.2]), np.array([1.0, 0, 0, 0]))  # +X: the wearer's left when facing +Z
     right = (np.array([-0.3, 1.1, 0.2]), np.array([1.0, 0, 0, 0]))
-    pk = dec.decode(P.osc_messages(_vmc_bundle(head, [right, left])))
+    pk = dec.decode(O.osc_messages(_vmc_bundle(head, [right, left])))
     assert set(pk.poses) == {0, 1, 2} and pk.bad == 0
     assert np.allclose(pk.poses[1][0], left[0], atol=1e-6) and np.allclose(pk.poses[2][0], right[0], atol=1e-6)
     assert np.allclose(pk.poses[0][0], head[0], atol=1e-6)
     # crossed later (a turn): the serials keep their sides
-    pk = dec.decode(P.osc_messages(_vmc_bundle(head, [left, right])))
+    pk = dec.decode(O.osc_messages(_vmc_bundle(head, [left, right])))
     assert np.allclose(pk.poses[2][0], left[0], atol=1e-6)
     # serials named left / right win over the side
     dec = P.VmcDecoder()
-    pk = dec.decode(P.osc_messages(_vmc_bundle(head, [right, left], names=("LeftHand", "RightHand"))))
+    pk = dec.decode(O.osc_messages(_vmc_bundle(head, [right, left], names=("LeftHand", "RightHand"))))
     assert np.allclose(pk.poses[1][0], right[0], atol=1e-6)
     # given serials; a tracker is a hand only when named
     dec = P.VmcDecoder(left="trkL", right="trkR")
-    pk = dec.decode(P.osc_messages(_vmc_bundle(head, [left, right], names=("trkL", "trkR"), kind=P.VMC_TRA)))
+    pk = dec.decode(O.osc_messages(_vmc_bundle(head, [left, right], names=("trkL", "trkR"), kind=P.VMC_TRA)))
     assert np.allclose(pk.poses[1][0], left[0], atol=1e-6) and np.allclose(pk.poses[2][0], right[0], atol=1e-6)
-    pk = P.VmcDecoder().decode(P.osc_messages(_vmc_bundle(head, [left, right], kind=P.VMC_TRA)))
+    pk = P.VmcDecoder().decode(O.osc_messages(_vmc_bundle(head, [left, right], kind=P.VMC_TRA)))
     assert set(pk.poses) == {0}
 
 
@@ -218,7 +219,7 @@ def test_osc_layout_round_trip_and_lost_devices(take):
         dec = P.OscDecoder()
         pk = P.Packet()
         for d in dgrams:
-            one = dec.decode(P.osc_messages(d))
+            one = dec.decode(O.osc_messages(d))
             pk.poses.update(one.poses)
             pk.meta.update(one.meta)
             pk.frame = one.frame if one.frame is not None else pk.frame
@@ -452,7 +453,7 @@ def _python_osc_datagrams(fmt, frame, clock, positions, quats, meta=None, bundle
     out = []
     for d in P.sample_datagrams(fmt, frame, clock, positions, quats, meta, bundle, announce):
         msgs = []
-        for address, args in P._python_osc_messages(d):
+        for address, args in O._python_osc_messages(d):
             m = OscMessageBuilder(address=address)
             for a in args:
                 m.add_arg(a, "s" if isinstance(a, str) else "i" if isinstance(a, int) else
@@ -486,19 +487,19 @@ def test_the_fast_osc_reader_and_writer_are_python_oscs(take):
         good = P.sample_datagrams(fmt, 3, 0.5, take.positions[3], take.quats[3], {"devices": "joints"})[0]
         for d in [good] + [_malformed(rng, good) for _ in range(2000)]:
             try:
-                want = P._python_osc_messages(d)
-            except P.MalformedPacket:
+                want = O._python_osc_messages(d)
+            except O.MalformedPacket:
                 want = "malformed"
             try:
-                got = P.osc_messages(d)
-            except P.MalformedPacket:
+                got = O.osc_messages(d)
+            except O.MalformedPacket:
                 got = "malformed"
             assert repr(got) == repr(want), d  # (repr: NaN arguments alike)
             out = []
             try:
-                P._fast_messages(d, out, 0, len(d))
+                O._fast_messages(d, out, 0, len(d))
                 fast += 1
-            except P._Unusual:
+            except O._Unusual:
                 pass
     assert fast > 200  # (the fast path was taken, not only python-osc's)
 
@@ -509,14 +510,14 @@ def test_bundle_with_a_negative_element_size_is_malformed_not_a_stall():
     for size in (-4, -8, 1 << 20):
         d = b"#bundle\x00" + b"\x00" * 8 + struct.pack(">i", size) + b"/a\x00\x00"
         t0 = time.perf_counter()
-        with pytest.raises(P.MalformedPacket):
-            P.osc_messages(d)
+        with pytest.raises(O.MalformedPacket):
+            O.osc_messages(d)
         assert time.perf_counter() - t0 < 0.5
     nested = b"/a\x00\x00"
     for _ in range(40):  # bundles nested 40 deep
         nested = b"#bundle\x00" + b"\x00" * 8 + struct.pack(">i", len(nested)) + nested
-    with pytest.raises(P.MalformedPacket):
-        P.osc_messages(nested)
+    with pytest.raises(O.MalformedPacket):
+        O.osc_messages(nested)
 
 
 def test_fuzz_malformed_packets_are_counted_and_skipped(take):

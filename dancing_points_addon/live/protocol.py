@@ -1,9 +1,9 @@
 """The two network layouts a live stream may use, read and written with
 ``python-osc`` (OSC 1.0 over UDP): the VMC protocol and this project's own.
 
-Reading is two steps. :func:`osc_messages` turns one UDP datagram into its
-``(address, arguments)`` in order, nested bundles included; a bundle's time tag
-is ignored (senders get it wrong, and a sample's time is its arrival). A
+Reading is two steps. :func:`~.osc.osc_messages` turns one UDP datagram into
+its ``(address, arguments)`` in order, nested bundles included; a bundle's time
+tag is ignored (senders get it wrong, and a sample's time is its arrival). A
 decoder (:class:`VmcDecoder`, :class:`OscDecoder`) then turns the messages of
 one datagram into a :class:`Packet`: the device poses it carries, in motion
 space (SPEC §1), and what else it says (a sample number, the sender's clock,
@@ -31,13 +31,13 @@ README) carries motion-space poses as a take file has them: see
 """
 from __future__ import annotations
 
-import logging
 import math
 import struct
 
 import numpy as np
 
 from . import OSC_PORT, VMC_PORT  # noqa: F401 - (the ports, for the modules that read this one)
+from .osc import BUNDLE, IMMEDIATELY, INT32, OscMessage, padded
 
 DEVICES = ("head", "lhand", "rhand")
 MAX_DISTANCE_M = 1000.0  # SPEC §3: a position farther than 1 km is not a pose
@@ -58,200 +58,8 @@ META_ANNOUNCE = "meta_keys"
 HAND_SIDE_M = 0.05  # a lone controller is given a side only this far to one side of the head
 
 
-class MalformedPacket(ValueError):
-    """A datagram that is no OSC packet (or one ``python-osc`` cannot read)."""
-
-
 class BadMessage(ValueError):
     """An OSC message at a known address whose arguments are not what it carries."""
-
-
-# --------------------------------------------------------------------------- OSC packets
-
-class _QuietPythonOsc(logging.Filter):
-    """``python-osc`` logs a warning (on the root logger) for each bundle
-    element or argument type it skips; a stream of bad packets would flood the
-    log. Those records are dropped (the receiver counts the packets instead);
-    nothing else is."""
-
-    def filter(self, record):
-        return not (record.name == "root" and record.module in ("osc_bundle", "osc_message"))
-
-
-_QUIET = _QuietPythonOsc()
-
-
-def _quiet_osc_logging() -> None:
-    root = logging.getLogger()
-    if _QUIET not in root.filters:
-        root.addFilter(_QUIET)
-
-
-MAX_BUNDLE_DEPTH = 16
-
-
-def bundle_framing_ok(dgram: bytes, depth: int = 0) -> bool:
-    """Whether each element size of a bundle (and of the bundles nested in it)
-    lies within the datagram. ``python-osc`` 1.10.2 loops for ever on a
-    negative size; this is checked before a bundle is handed to it (only the
-    sizes: the elements themselves are ``python-osc``'s to read)."""
-    if depth > MAX_BUNDLE_DEPTH or len(dgram) < 16:
-        return False
-    i, n = 16, len(dgram)  # "#bundle\0" and the 8-byte time tag
-    while i < n:
-        if i + 4 > n:
-            return False
-        size = struct.unpack_from(">i", dgram, i)[0]
-        i += 4
-        if size < 0 or i + size > n:
-            return False
-        if dgram.startswith(b"#bundle\x00", i) and not bundle_framing_ok(dgram[i:i + size], depth + 1):
-            return False
-        i += size
-    return True
-
-
-class _Unusual(Exception):
-    """A datagram the fast reader leaves to ``python-osc``."""
-
-
-_INT, _FLOAT, _DOUBLE = struct.Struct(">i"), struct.Struct(">f"), struct.Struct(">d")
-_ARG_SIZE = {"i": 4, "f": 4, "d": 8}
-_BUNDLE = b"#bundle\x00"
-
-
-def _fast_string(d: bytes, i: int, start: int, end: int) -> tuple:
-    """The string at ``i`` of the message ``d[start:end]`` and where the next
-    item starts (its null, padded to 4 bytes from the message's start)."""
-    j = d.find(b"\x00", i, end)
-    if j < 0:
-        raise _Unusual
-    nxt = start + ((j - start + 4) & ~3)
-    if nxt > end:
-        raise _Unusual
-    try:
-        return d[i:j].decode("utf-8"), nxt
-    except UnicodeDecodeError:
-        raise _Unusual from None
-
-
-_PLANS = {}  # a message's type tags -> how to read its arguments (see _plan)
-_MAX_PLANS = 256  # (a fuzzing sender's odd tag strings are read without keeping their plan)
-
-
-def _plan(tags: str) -> tuple:
-    """The arguments of ``tags`` (``,`` then ``i f d s``) as steps: None (a
-    string) or one ``struct`` for a run of numbers, read in one call."""
-    plan = _PLANS.get(tags)
-    if plan is not None:
-        return plan
-    steps, run = [], ""
-    for c in tags[1:]:
-        if c == "s":
-            if run:
-                steps.append(struct.Struct(">" + run))
-                run = ""
-            steps.append(None)
-        elif c in _ARG_SIZE:
-            run += c
-        else:
-            raise _Unusual
-    if run:
-        steps.append(struct.Struct(">" + run))
-    plan = tuple(steps)
-    if len(_PLANS) < _MAX_PLANS:
-        _PLANS[tags] = plan
-    return plan
-
-
-def _fast_message(d: bytes, start: int, end: int) -> tuple:
-    address, i = _fast_string(d, start, start, end)
-    if i == end:
-        return address, []
-    if d[i:i + 1] != b",":
-        raise _Unusual
-    tags, i = _fast_string(d, i, start, end)
-    args = []
-    for step in _plan(tags):
-        if step is None:
-            v, i = _fast_string(d, i, start, end)
-            args.append(v)
-        else:
-            if i + step.size > end:
-                raise _Unusual
-            args.extend(step.unpack_from(d, i))
-            i += step.size
-    return address, args
-
-
-def _fast_messages(d: bytes, out: list, start: int, end: int, depth: int = 0) -> None:
-    """The common datagrams (messages of ``i f d s`` arguments, bundles of
-    them) read with ``struct``, as ``python-osc`` reads them; anything else
-    raises :class:`_Unusual` (then ``python-osc`` reads it). ``d[start:end]``:
-    the packet (a bundle's element is read in place)."""
-    if d.startswith(_BUNDLE, start, end):
-        if depth > MAX_BUNDLE_DEPTH or end - start < 16:
-            raise _Unusual
-        i = start + 16
-        while i < end:
-            if i + 4 > end:
-                raise _Unusual
-            size = _INT.unpack_from(d, i)[0]
-            i += 4
-            if size <= 0 or i + size > end:
-                raise _Unusual
-            _fast_messages(d, out, i, i + size, depth + 1)
-            i += size
-    elif d[start:start + 1] == b"/":
-        out.append(_fast_message(d, start, end))
-    else:
-        raise _Unusual
-
-
-def osc_messages(dgram: bytes) -> list:
-    """The ``(address, arguments)`` of one datagram, in the order they were
-    sent (a bundle's elements depth first; time tags ignored).
-    :class:`MalformedPacket` when it is no OSC packet. The common datagrams
-    are read by a small ``struct`` reader (a fifth of ``python-osc``'s time:
-    a 1,000 Hz sender), the rest by ``python-osc``; both give the same."""
-    out = []
-    try:
-        _fast_messages(dgram, out, 0, len(dgram))
-        return out
-    except (_Unusual, struct.error, RecursionError):
-        pass
-    return _python_osc_messages(dgram)
-
-
-def _python_osc_messages(dgram: bytes) -> list:
-    from pythonosc.osc_bundle import OscBundle
-    from pythonosc.osc_message import OscMessage
-
-    _quiet_osc_logging()
-    out = []
-    try:
-        if OscBundle.dgram_is_bundle(dgram):
-            if not bundle_framing_ok(dgram):
-                raise MalformedPacket("a bundle element's size runs outside the packet")
-            stack = [iter(OscBundle(dgram))]
-            while stack:
-                item = next(stack[-1], None)
-                if item is None:
-                    stack.pop()
-                elif isinstance(item, OscBundle):
-                    stack.append(iter(item))
-                else:
-                    out.append((item.address, item.params))
-        elif OscMessage.dgram_is_message(dgram):
-            m = OscMessage(dgram)
-            out.append((m.address, m.params))
-        else:
-            raise MalformedPacket("not an OSC message or bundle")
-    except MalformedPacket:
-        raise
-    except Exception as exc:  # noqa: BLE001 - python-osc's ParseError, or anything a broken packet raises
-        raise MalformedPacket(f"{type(exc).__name__}: {exc}") from None
-    return out
 
 
 def _number(v) -> float:
@@ -534,16 +342,16 @@ _PREFIXES = {}
 
 def _device_prefixes(fmt: str) -> tuple:
     """Per device, the bytes of its message before the numbers, and the
-    ``struct`` of the numbers: what :class:`_Message` writes."""
+    ``struct`` of the numbers: what :class:`OscMessage` writes."""
     key = (fmt, VMC_SERIALS)
     got = _PREFIXES.get(key)
     if got is None:
         if fmt == "vmc":
-            heads = [_padded(a.encode("utf-8")) + _padded(b",sfffffff") + _padded(VMC_SERIALS[d].encode("utf-8"))
+            heads = [padded(a.encode("utf-8")) + padded(b",sfffffff") + padded(VMC_SERIALS[d].encode("utf-8"))
                      for d, a in enumerate((VMC_HMD, VMC_CON, VMC_CON))]
             got = heads, struct.Struct(">7f")
         else:
-            got = [_padded((OSC_PREFIX + n).encode("utf-8")) + _padded(b",ddddddd") for n in DEVICES], \
+            got = [padded((OSC_PREFIX + n).encode("utf-8")) + padded(b",ddddddd") for n in DEVICES], \
                 struct.Struct(">7d")
         _PREFIXES[key] = got
     return got
@@ -552,38 +360,16 @@ def _device_prefixes(fmt: str) -> tuple:
 def _sample(fmt, frame, clock, devices, meta, bundle, announce) -> list:
     msgs = []
     if announce:
-        msgs.append(_Message(OSC_META, ("s", META_ANNOUNCE), ("s", ",".join(announce))).dgram)
+        msgs.append(OscMessage(OSC_META, ("s", META_ANNOUNCE), ("s", ",".join(announce))).dgram)
     for k, v in reversed(list((meta or {}).items())):  # (each put first in turn: the last key first)
-        msgs.append(_Message(OSC_META, ("s", str(k)), ("s", str(v))).dgram)
+        msgs.append(OscMessage(OSC_META, ("s", str(k)), ("s", str(v))).dgram)
     if fmt == "vmc":
-        msgs += [_Message(VMC_TIME, ("f", float(clock))).dgram, *devices, _Message(VMC_OK, ("i", 1)).dgram]
+        msgs += [OscMessage(VMC_TIME, ("f", float(clock))).dgram, *devices, OscMessage(VMC_OK, ("i", 1)).dgram]
     else:
         msgs += devices
-    number = _Message(OSC_FRAME, ("i", int(frame) & 0x7FFFFFFF)).dgram
+    number = OscMessage(OSC_FRAME, ("i", int(frame) & 0x7FFFFFFF)).dgram
     if fmt == "osc" and not bundle:
         # the sample number first: it opens the sample's group at the receiver
         return [number] + msgs
     msgs.append(number)
-    return [_BUNDLE + _IMMEDIATELY + b"".join(_INT.pack(len(m)) + m for m in msgs)]
-
-
-_IMMEDIATELY = b"\x00" * 7 + b"\x01"  # the OSC time tag "immediately" (python-osc's IMMEDIATELY)
-
-
-def _padded(b: bytes) -> bytes:
-    return b + b"\x00" * (4 - len(b) % 4)
-
-
-class _Message:
-    """One OSC message, written with ``struct`` as ``python-osc``'s builder
-    writes it (``i``, ``f``, ``d``, ``s`` arguments; the tests hold them to the
-    same bytes)."""
-
-    __slots__ = ("dgram",)
-
-    def __init__(self, address, *typed):
-        parts = [_padded(address.encode("utf-8")), _padded(("," + "".join(t for t, _ in typed)).encode("ascii"))]
-        for t, v in typed:
-            parts.append(_padded(v.encode("utf-8")) if t == "s" else
-                         (_INT if t == "i" else _FLOAT if t == "f" else _DOUBLE).pack(v))
-        self.dgram = b"".join(parts)
+    return [BUNDLE + IMMEDIATELY + b"".join(INT32.pack(len(m)) + m for m in msgs)]

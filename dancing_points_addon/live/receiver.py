@@ -28,7 +28,7 @@ import threading
 import time
 
 from ..errors import UserError
-from .protocol import osc_messages
+from .osc import osc_messages
 
 GROUP_WINDOW_S = 0.002
 MAX_DATAGRAM = 65536
