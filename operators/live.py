@@ -213,7 +213,7 @@ def start(context, settings):
         raise
     sink.append(session)
     if receiver is not None:
-        receiver.hold = session.busy  # datagrams read between frames, not during one
+        session.listen_to(receiver)
         receiver.start()
     found = scene_song(context.scene)
     if found is not None:

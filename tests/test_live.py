@@ -627,6 +627,51 @@ def test_datagrams_that_come_during_a_frame_wait_and_keep_their_arrival(take, ke
     assert abs(np.median(np.diff(stamps)) - np.median(np.diff(sent))) < 0.001
 
 
+@pytest.mark.parametrize("listened", [True, False])
+def test_no_silence_while_datagrams_wait_to_be_read(take, synth, listened):
+    """A receiver that cannot read for a while (a busy machine; here its hold
+    taken for 0.4 s, longer than the silence gap) while the dancer keeps
+    sending: the loop declares no silence while datagrams wait in the socket,
+    so none of them comes late and the take has no lost rows. (Not listened
+    to, the loop sees silence and drops the samples that arrived in it.)"""
+    s = LiveSession(LiveOptions(source="vmc", models=MODELS, height=1.7, floor_y=0.0),
+                    Synthesizer(SynthesisOptions(models=MODELS), nets=synth.nets))
+    rx = UdpReceiver(SampleAssembler(P.VmcDecoder(), s.put, s.counters), 0, "127.0.0.1")
+    rx.open()
+    s.listen_to(rx)
+    if not listened:
+        s.waiting = None
+    rx.start()
+    s.start()
+    t, pos, quats = stream_rows(take, 72.0)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        t0 = time.perf_counter()
+        for i in range(108):  # 1.5 s at 72 Hz
+            while time.perf_counter() < t0 + t[i]:
+                time.sleep(0.0005)
+            if i == 36:
+                s.busy.acquire()  # the receiver stops reading (as if it had no CPU)
+            elif i == 65:
+                s.busy.release()
+            tx.sendto(P.sample_datagrams("vmc", i, float(t[i]), pos[i], quats[i])[0], ("127.0.0.1", rx.port))
+        time.sleep(0.1)
+    finally:
+        if s.busy.locked():
+            s.busy.release()
+        tx.close()
+        rx.stop()
+    res = s.finish()
+    c = res.counters
+    print(f"late {c['late']}, used {c['used']}, rows {len(res.take.time)}, "
+          f"rows with a lost device {int(np.isnan(res.take.positions).any(axis=(1, 2)).sum())}")
+    if listened:
+        assert c["late"] == 0 and c["used"] == 108
+        assert not np.isnan(res.take.positions).any()
+    else:
+        assert c["late"] > 0
+
+
 def test_a_pause_while_the_clocks_are_read_does_not_date_a_datagram_early(take):
     """The kernel's stamp is put on the receiver's clock by reading both
     clocks; a thread paused between the two readings (a busy machine) must not

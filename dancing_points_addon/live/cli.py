@@ -155,7 +155,7 @@ def cmd_live(args) -> int:
         raise
     session.gate = gate
     sink.append(session)
-    rx.hold = session.busy  # datagrams read between frames, not during one
+    session.listen_to(rx)
     rx.start()
     session.start()
     tty = sys.stdout.isatty()

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import errno
 import math
+import select
 import socket
 import struct
 import sys
@@ -207,6 +208,7 @@ class UdpReceiver:
         self.kernel_stamps = False  # the system stamps each datagram's arrival (Linux), set when bound
         self._last_t = -math.inf
         self._offset = None  # the receiver's clock minus the system's (kernel stamps)
+        self._stamped = []  # datagrams taken off the socket during a frame, not yet read
         self.port = int(port)
         self.host = host
         self.clock = clock
@@ -249,7 +251,7 @@ class UdpReceiver:
 
     def _run(self) -> None:
         sock, asm, clock, hold, kernel = self.sock, self.assembler, self.clock, self.hold, self.kernel_stamps
-        stamped = []  # (datagram, arrival, sender) not yet read into the assembler
+        stamped = self._stamped  # (datagram, arrival, sender) not yet read into the assembler
         try:
             while not self._stop.is_set():
                 if stamped:
@@ -317,6 +319,20 @@ class UdpReceiver:
         if b - a <= STAMP_PAIR_S or self._offset is None:
             self._offset = 0.5 * (a + b) - real
         return b, self._offset
+
+    def waiting(self) -> bool:
+        """Whether datagrams have arrived that the assembler has not read yet
+        (in the socket, or taken off it during a frame): whoever would say
+        that nothing came (the live loop's silence) waits for them."""
+        if self._stamped:
+            return True
+        sock = self.sock
+        if sock is None:
+            return False
+        try:
+            return bool(select.select([sock], [], [], 0)[0])
+        except (OSError, ValueError):  # (closed meanwhile)
+            return False
 
     @property
     def alive(self) -> bool:

@@ -189,6 +189,7 @@ class LiveSession:
         self.error = None
         self._lock = threading.Lock()  # feed/tick/finish: one at a time
         self.busy = threading.Lock()  # held while a live frame is made (a receiver's ``hold``: it reads between)
+        self.waiting = None  # () -> whether a receiver has datagrams not yet read (:meth:`listen_to`)
         self._live_after = -math.inf  # rows that arrived before this clock time are caught up (a role switch)
         self.role_switch_s = None  # seconds the switch to the stream's role took (None: none made)
         self._role_warned = False
@@ -205,6 +206,15 @@ class LiveSession:
                         self._unavailable[role] = str(exc)
 
     # -- input -------------------------------------------------------------------
+    def listen_to(self, receiver) -> None:
+        """Take ``receiver``'s samples (a :class:`~.receiver.UdpReceiver`, not
+        yet started): it reads its datagrams between live frames, not during
+        one (its ``hold`` is :attr:`busy`), and no silence is declared while
+        it has datagrams it has not read (their arrival may be before the
+        silence: they would come late)."""
+        receiver.hold = self.busy
+        self.waiting = receiver.waiting
+
     def put(self, sample: Sample) -> None:
         """From one thread (the receiver's, or the caller's): one sample for the
         loop; counted at once for the input rate, read or not."""
@@ -309,7 +319,7 @@ class LiveSession:
         if self.t_first is None:
             return
         due = self._last_abs + (1.0 / NET_FPS if self._silent else self.options.gap_s)
-        if now < due:
+        if now < due or self.waiting is not None and self.waiting():
             return
         got = [None, None, None]
         for d in range(3):
