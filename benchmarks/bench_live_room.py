@@ -27,7 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dancing_points_addon.formats.asf_amc import load_amc  # noqa: E402
-from dancing_points_addon.formats.take import Take, read_take, take_from_motion, take_to_text  # noqa: E402
+from dancing_points_addon.formats.take import Take, take_from_motion, take_to_text  # noqa: E402
+from dancing_points_addon.formats.take_read import read_take  # noqa: E402
 from dancing_points_addon.live.stream import stream_rows  # noqa: E402
 from bench_live_rate import _free_port  # noqa: E402  (beside this script)
 

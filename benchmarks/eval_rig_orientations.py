@@ -76,7 +76,8 @@ def main(argv=None):
     from support.helpers import cut
     from support.rig_builder import build_rig, export_rig
     from dancing_points_addon.inputs import load_input
-    from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
+    from dancing_points_addon.formats.take import take_from_motion, write_take
+    from dancing_points_addon.formats.take_read import read_take
     from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
     from training.evaluate import test_segments
 

@@ -116,7 +116,7 @@ def run(frames=2000, threads=1, model_dir=None, take_path=SAMPLE, foot_lock=True
     floor, interleaved in ``blocks`` (a shared machine's speed drifts: the ratio
     compares the two under the same conditions)."""
     from .resample import resample_take
-    from .formats.take import read_take
+    from .formats.take_read import read_take
 
     model_dir = resolve_model_dir(model_dir)
     clocks = {"networks": [0.0], "recovery": [0.0]}

@@ -14,8 +14,8 @@ from .formats.files import regular_file
 from .formats.limits import MAX_ABS_TIME_S, MAX_GAP_S, check_duration, check_height, check_rate
 from .resample import NET_FPS, resample_plan, tracked_after_resampling
 from .formats.rig_rest import asf_rest_corrections, rig_problem_line
-from .formats.take import (DEVICES, MAX_DISTANCE_M, ORIENTATIONS_PROBLEM_KEY, Take, read_take, take_from_motion,
-                   take_from_tracked)
+from .formats.take import DEVICES, MAX_DISTANCE_M, ORIENTATIONS_PROBLEM_KEY, Take, take_from_motion, take_from_tracked
+from .formats.take_read import read_take
 from .skeleton import HEAD_BONE, JOINT_INDEX, WRISTS
 
 HAND_BONES = (JOINT_INDEX["lhand"], JOINT_INDEX["rhand"])  # what the grips of openxr devices are rigid on

@@ -32,7 +32,8 @@ from dancing_points_addon import skinning  # noqa: E402
 from dancing_points_addon.formats.asf_amc import load_amc  # noqa: E402
 from dancing_points_addon.resample import resample_take  # noqa: E402
 from dancing_points_addon.skeleton import JOINT_NAMES, Motion  # noqa: E402
-from dancing_points_addon.formats.take import read_take, take_from_motion, write_take  # noqa: E402
+from dancing_points_addon.formats.take import take_from_motion, write_take  # noqa: E402
+from dancing_points_addon.formats.take_read import read_take  # noqa: E402
 
 SECONDS = 10.0
 MM = 1e-3

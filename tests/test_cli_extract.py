@@ -8,7 +8,8 @@ import pytest
 
 from conftest import ROOT, SALSA, SOLO
 from dancing_points_addon.formats.asf_amc import load_amc
-from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
+from dancing_points_addon.formats.take import take_from_motion, write_take
+from dancing_points_addon.formats.take_read import read_take
 from support.helpers import (REJECTIONS, assert_bad_input, bad_number, bone_missing, broken_amc, frame_truncated,
                              frames_missing, frames_swapped, non_finite, root_far, irregular_take, quat_angle_deg,
                              run_cli, short_bone, unknown_bone, write_case)

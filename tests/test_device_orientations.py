@@ -9,7 +9,8 @@ from dancing_points_addon.duet import save_npz
 from dancing_points_addon.errors import InputError
 from dancing_points_addon.formats.devices import DeviceOffsets, DeviceTurns, mirror_turn, parse_turn
 from dancing_points_addon.inputs import HAND_BONES
-from dancing_points_addon.formats.take import Take, read_take, write_take
+from dancing_points_addon.formats.take import Take, write_take
+from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.rotations import matrix_to_quat, quat_to_matrix
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from support.helpers import run_cli

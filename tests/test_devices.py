@@ -12,7 +12,8 @@ from dancing_points_addon.calibration import (TRAIN_HEIGHT, apply_calibration, c
 from dancing_points_addon.errors import InputError
 from dancing_points_addon.formats.devices import DeviceOffsets, openxr_to_points
 from dancing_points_addon.inputs import HAND_BONES, load_input
-from dancing_points_addon.formats.take import Take, read_take
+from dancing_points_addon.formats.take import Take
+from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.representation import DEVICE_FROM_HEAD
 from dancing_points_addon.resample import resample_take
 from dancing_points_addon.rotations import quat_to_matrix

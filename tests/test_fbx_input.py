@@ -43,8 +43,8 @@ from support.ext_util import import_from_extension  # noqa: E402
 from dancing_points_addon.errors import InputError  # noqa: E402
 from dancing_points_addon.formats.bvh import write_bvh  # noqa: E402
 from dancing_points_addon.inputs import load_input  # noqa: E402
-from dancing_points_addon.formats.take import (read_take, take_from_motion, take_orientations_usable,  # noqa: E402
-                                               write_take)
+from dancing_points_addon.formats.take import take_from_motion, take_orientations_usable, write_take  # noqa: E402
+from dancing_points_addon.formats.take_read import read_take  # noqa: E402
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer  # noqa: E402
 
 MM = 1e-3

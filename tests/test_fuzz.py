@@ -21,7 +21,8 @@ from dancing_points_addon.errors import InputError
 from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.bvh import write_bvh
 from dancing_points_addon.inputs import check_take, load_input
-from dancing_points_addon.formats.take import COLUMNS, Take, parse_take_bytes, take_to_text
+from dancing_points_addon.formats.take import COLUMNS, Take, take_to_text
+from dancing_points_addon.formats.take_read import parse_take_bytes
 from dancing_points_addon.resample import resample_take
 from dancing_points_addon.skeleton import Motion
 

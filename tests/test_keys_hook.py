@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from dancing_points_addon.formats.take import Take, read_take
+from dancing_points_addon.formats.take import Take
+from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.nets import load_nets
 from dancing_points_addon.runtime import KeySource, SynthesisOptions, Synthesizer
 from training.evaluate import LeaderTrajKeys, PastInputKeys

@@ -26,7 +26,8 @@ from conftest import MODELS, ROOT
 from dancing_points_addon.calibration import headset_take
 from dancing_points_addon.errors import UserError
 from dancing_points_addon.formats.asf_amc import load_amc
-from dancing_points_addon.formats.take import Take, parse_take_bytes, read_take, take_from_motion, take_to_text
+from dancing_points_addon.formats.take import Take, take_from_motion, take_to_text
+from dancing_points_addon.formats.take_read import parse_take_bytes, read_take
 from dancing_points_addon.live import osc as O
 from dancing_points_addon.live import protocol as P
 from dancing_points_addon.live.receiver import Counters, PortInUse, Sample, SampleAssembler, UdpReceiver

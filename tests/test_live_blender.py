@@ -32,7 +32,8 @@ from support.helpers import free_udp_port  # noqa: E402
 
 from dancing_points_addon.blender_math import C  # noqa: E402
 from dancing_points_addon.calibration import headset_take  # noqa: E402
-from dancing_points_addon.formats.take import Take, parse_take_bytes, read_take, take_to_text  # noqa: E402
+from dancing_points_addon.formats.take import Take, take_to_text  # noqa: E402
+from dancing_points_addon.formats.take_read import parse_take_bytes, read_take  # noqa: E402
 from dancing_points_addon.live import protocol as P  # noqa: E402
 from dancing_points_addon.live.receiver import Sample  # noqa: E402
 from dancing_points_addon.live.stream import stream_rows  # noqa: E402

@@ -24,7 +24,8 @@ from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.bvh import parse_bvh, write_bvh
 from dancing_points_addon.formats.limits import MAX_DURATION_S
 from dancing_points_addon.inputs import check_take, load_input
-from dancing_points_addon.formats.take import COLUMNS, Take, parse_take_bytes, read_take, take_from_motion, write_take
+from dancing_points_addon.formats.take import COLUMNS, Take, take_from_motion, write_take
+from dancing_points_addon.formats.take_read import parse_take_bytes, read_take
 from dancing_points_addon.resample import output_times, resample_take
 from dancing_points_addon.skeleton import Motion
 
@@ -280,7 +281,7 @@ def test_csv_reader_streams(tmp_path):
 
 def test_chunked_reading_errors_name_the_line(tmp_path, monkeypatch):
     """Errors and line numbers are the same whatever the chunk size (CRLF, comments between rows)."""
-    import dancing_points_addon.formats.take as T
+    import dancing_points_addon.formats.take_read as T
     lines = good_lines(40)
     lines[10:10] = ["# a comment", ""]
     lines[30] = lines[29]  # equal time: rejected at this line

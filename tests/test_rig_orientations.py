@@ -149,7 +149,7 @@ def test_core_and_blender_readers_give_the_csv_orientations(rigs, naming):
     from support import blender_scene_util as bsu
     from support.ext_util import import_from_extension
     from dancing_points_addon.inputs import load_input
-    from dancing_points_addon.formats.take import read_take
+    from dancing_points_addon.formats.take_read import read_take
 
     take_rig = import_from_extension("operators.take_rig")
     ref = read_take(rigs["dir"] / "take.csv")
@@ -195,7 +195,7 @@ def test_a_rig_without_its_rest_pose_gives_points_without_orientations(rigs, tmp
     import bpy
     from support import blender_scene_util as bsu
     from support.ext_util import import_from_extension
-    from dancing_points_addon.formats.take import read_take
+    from dancing_points_addon.formats.take_read import read_take
 
     path = rigs["files"]["unskinned"]
     res = run_cli("extract", path, "-o", tmp_path / "x.csv", timeout=300)

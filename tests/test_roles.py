@@ -8,7 +8,8 @@ from conftest import SALSA
 from dancing_points_addon import features as F
 from dancing_points_addon.errors import InputError
 from dancing_points_addon.formats.asf_amc import load_amc
-from dancing_points_addon.formats.take import Take, read_take, take_from_motion, write_take
+from dancing_points_addon.formats.take import Take, take_from_motion, write_take
+from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.nets import MODEL_DIR, ROLE_DIRS, check_models
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import PARENTS, TRACKED, Motion

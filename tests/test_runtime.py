@@ -11,7 +11,8 @@ from dancing_points_addon.representation import root_from_motion
 from dancing_points_addon.nets import MODEL_DIR, load_nets
 from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import TRACKED, Motion, bone_lengths_from_positions
-from dancing_points_addon.formats.take import Take, read_take, take_from_motion
+from dancing_points_addon.formats.take import Take, take_from_motion
+from dancing_points_addon.formats.take_read import read_take
 from support.helpers import (REJECTIONS, assert_bad_input, bad_number, bone_twist_deg, broken_amc, cut, run_cli,
                              unknown_bone, write_case)
 

@@ -9,7 +9,7 @@ import pytest
 from dancing_points_addon import skinning
 from dancing_points_addon.blender_math import consistent_pose
 from dancing_points_addon.formats.asf_amc import load_amc
-from dancing_points_addon.formats.take import read_take
+from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.ik import bone_transforms, transforms_to_matrices
 from dancing_points_addon.runtime import Synthesizer
 from dancing_points_addon.skeleton import rest_starts

@@ -14,7 +14,7 @@ from support.songs import band_samples, click_song
 from dancing_points_addon import audio
 from dancing_points_addon.beats import count_labels, track_beats
 from dancing_points_addon.errors import InputError
-from dancing_points_addon.formats.take import parse_take_bytes
+from dancing_points_addon.formats.take_read import parse_take_bytes
 
 SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"
 BEAT_TOL_S = 0.020

@@ -176,7 +176,7 @@ def test_removing_the_take_keeps_the_users_strips(song_take, tmp_path):
 def test_live_plays_the_song_and_keeps_its_offset(song_take, tmp_path, monkeypatch):
     """Blender Live (its VR source, stood in for) on a scene with the song: the
     kept take names the song and the song's time at the take's time 0."""
-    from dancing_points_addon.formats.take import read_take
+    from dancing_points_addon.formats.take_read import read_take
 
     take, _ = song_take
     monkeypatch.setenv("DP_MODEL_DIR", MODELS)

@@ -14,7 +14,8 @@ from dancing_points_addon.rotations import (axis_rotation, matrix_to_quat, quat_
                                             rotation_angle)
 from dancing_points_addon.skeleton import HEAD_BONE, TRACKED, Motion
 from dancing_points_addon.inputs import load_input
-from dancing_points_addon.formats.take import COLUMNS, HEAD_DEVICE_OFFSET, Take, read_take, take_from_motion, write_take
+from dancing_points_addon.formats.take import COLUMNS, HEAD_DEVICE_OFFSET, Take, take_from_motion, write_take
+from dancing_points_addon.formats.take_read import read_take
 
 def random_take(n=50, seed=0, gaps=True):
     rng = np.random.default_rng(seed)

@@ -28,7 +28,8 @@ from dancing_points_addon.representation import device_rotation, root_from_head,
 from dancing_points_addon.nets import OnnxNet, load_nets
 from dancing_points_addon.runtime import KEY_INDEX, KeySource, SynthesisOptions, Synthesizer
 from dancing_points_addon.skeleton import HEAD_BONE, TRACKED, WRISTS, bone_lengths_from_positions
-from dancing_points_addon.formats.take import read_take, take_from_motion, write_take
+from dancing_points_addon.formats.take import take_from_motion, write_take
+from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.calibration import TRAIN_HEIGHT, headset_take, height_from_head
 from dancing_points_addon.formats.devices import DeviceOffsets
 from dancing_points_addon.inputs import HAND_BONES

@@ -25,7 +25,7 @@ def as_written(positions, quats):
 
 
 def as_read(quats):
-    """Written quaternions ``(..., 4)`` as :func:`~..formats.take.read_take` gives them: normalised."""
+    """Written quaternions ``(..., 4)`` as :func:`~..formats.take_read.read_take` gives them: normalised."""
     with np.errstate(invalid="ignore"):
         return quats / np.linalg.norm(quats, axis=-1)[..., None]
 
