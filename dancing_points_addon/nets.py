@@ -212,7 +212,7 @@ def check_models(model_dir=None, threads: int = 1, role: str = "leader") -> str:
             if isinstance(n_out, int) and n_out != 3 * len(LOWER_BODY):
                 raise ModelError(f"{path}: gives {n_out} outputs, the pose anchor needs {3 * len(LOWER_BODY)}")
         if kind == "hip":
-            from .follower import HIP_BINS
+            from .partner_pose import HIP_BINS
 
             n_out = net.session.get_outputs()[0].shape[-1]
             if isinstance(n_out, int) and n_out != HIP_BINS:

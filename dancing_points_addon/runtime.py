@@ -31,7 +31,8 @@ from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate
 from .dancer_state import DancerState, advance_together
 from .device_follow import DeviceFollow, hand_flex, limit_rotation
 from .duet import Duet, DuetFrame
-from .follower import OUT_SMOOTH, FollowerOptions, HandHold, HipTwist, Placement, Separation, hip_heading_from_probs
+from .follower import OUT_SMOOTH, FollowerOptions, Placement, Separation
+from .partner_pose import HandHold, HipTwist, hip_heading_from_probs
 from .nets import contact_floor_levels, load_nets
 from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose,
                    move_keeping_feet)

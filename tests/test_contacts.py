@@ -93,7 +93,7 @@ def test_hip_heading_network_knows_where_her_hips_face(test_clips, salsa_dir):
     turned towards before) and than the train frames' own distribution of that
     turn (what a network that learnt only the prior would say)."""
     from dancing_points_addon import features as F
-    from dancing_points_addon.follower import HIP_BINS, hip_heading_from_probs
+    from dancing_points_addon.partner_pose import HIP_BINS, hip_heading_from_probs
     from dancing_points_addon.representation import hip_heading
     from training.data import hip_heading_samples, mapping_inputs
     from training.dataset import build_clips

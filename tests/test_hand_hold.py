@@ -4,7 +4,8 @@ her own shoulder, sweep it across between his hands)."""
 import numpy as np
 import pytest
 
-from dancing_points_addon.follower import HandHold, HoldOptions
+from dancing_points_addon.follower import HoldOptions
+from dancing_points_addon.partner_pose import HandHold
 from dancing_points_addon.skeleton import JOINT_INDEX, WRISTS
 
 ARM = 0.55  # her arm, shoulder to wrist (m)

@@ -562,7 +562,8 @@ def test_hip_twist_turns_her_hips_not_her_shoulders(take10):
     their shape."""
     from math import atan2, degrees, radians
 
-    from dancing_points_addon.follower import HipOptions, HipTwist
+    from dancing_points_addon.follower import HipOptions
+    from dancing_points_addon.partner_pose import HipTwist
     from dancing_points_addon.representation import hip_heading
 
     fol = take10[4]

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from dancing_points_addon import features as F
-from dancing_points_addon.follower import HIP_BINS
+from dancing_points_addon.partner_pose import HIP_BINS
 from dancing_points_addon.skeleton import LOWER_BODY
 from training.dataset import build_clips, split_range
 from training import train as T

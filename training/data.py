@@ -82,7 +82,7 @@ def hip_heading_samples(clips):
     """The hip-heading network's samples: the mapping input at every frame of the
     duet clips and the bin of the follower's hip heading relative to the
     leader's root heading there, one-hot ``(n, HIP_BINS)``."""
-    from dancing_points_addon.follower import HIP_BINS, hip_heading_bins
+    from dancing_points_addon.partner_pose import HIP_BINS, hip_heading_bins
     from dancing_points_addon.representation import hip_heading
 
     def bins(c):

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from dancing_points_addon import features as F
-from dancing_points_addon.follower import HIP_BINS
+from dancing_points_addon.partner_pose import HIP_BINS
 from dancing_points_addon.skeleton import LOWER_BODY
 
 

@@ -27,7 +27,7 @@ import torch
 
 from dancing_points_addon import features as F
 from dancing_points_addon.calibration import TRAIN_HEIGHT
-from dancing_points_addon.follower import HIP_BINS
+from dancing_points_addon.partner_pose import HIP_BINS
 from dancing_points_addon.nets import MODEL_FILES
 from training.dataset import load_clips, solo_clips, swap_roles
 
