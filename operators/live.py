@@ -147,7 +147,7 @@ def xr_session_state(context):
 
 
 def _options(settings, prefs_threads=1, models=None):
-    from ..dancing_points_addon.live.session import LiveOptions
+    from ..dancing_points_addon.live.options import LiveOptions
 
     check_dancer("Live", settings.height, settings.use_floor_y, settings.floor_y)
     source = settings.source.lower()

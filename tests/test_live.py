@@ -33,7 +33,8 @@ from dancing_points_addon.live import protocol as P
 from dancing_points_addon.live.receiver import Counters, PortInUse, Sample, SampleAssembler, UdpReceiver
 from dancing_points_addon.live.senders import SenderGate
 from dancing_points_addon.live.rows import CausalResampler, as_read
-from dancing_points_addon.live.session import LiveOptions, LiveSession
+from dancing_points_addon.live.session import LiveSession
+from dancing_points_addon.live.options import LiveOptions
 from dancing_points_addon.live.stream import stream_rows, stream_take
 from dancing_points_addon.live.xr import motion_to_xr, xr_to_motion
 from dancing_points_addon.resample import resample_take
@@ -932,7 +933,7 @@ def test_metadata_that_never_comes_is_waited_for_a_bounded_time(take, synth, ann
     ``META_WAIT_S`` past its window, then goes on under the defaults with one
     warning saying which. A sender that announces nothing (any VMC sender) is
     not waited for: calibrated at 1 s, no warning."""
-    from dancing_points_addon.live.session import META_WAIT_S
+    from dancing_points_addon.live.stream_meta import META_WAIT_S
 
     t, pos, quats = stream_rows(take, 72.0)
     n = 72 * 4

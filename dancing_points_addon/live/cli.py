@@ -127,7 +127,8 @@ def cmd_live(args) -> int:
     from .protocol import decoder_for
     from .receiver import Counters, UdpReceiver
     from .senders import SenderGate
-    from .session import LiveOptions, LiveSession, ignored_senders_text
+    from .session import LiveSession
+    from .options import LiveOptions, ignored_senders_text
 
     out, csv = _outputs(args.output)
     if args.audio:  # the song the dancer dances to: read once, before anything listens

@@ -6,7 +6,7 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
 
 1. **rows**: each sample becomes a take row at its arrival time. A device the
    sample does not name keeps its last pose if that is at most
-   :attr:`LiveOptions.gap_s` old, else it is lost (NaN, SPEC §3); a device the
+   :attr:`~.options.LiveOptions.gap_s` old, else it is lost (NaN, SPEC §3); a device the
    sender marks lost is lost at once. When nothing arrives for ``gap_s`` the
    loop adds rows of lost devices, one a frame, so the duet goes on (the
    runtime stands in for lost devices). A sample whose time is not after the
@@ -18,7 +18,7 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
    looking ahead, which a live loop cannot).
 3. **calibration**: with the height and the floor known (options, or the
    stream's metadata) the duet starts at once; otherwise the first
-   :attr:`LiveOptions.calibration_s` seconds of rows are calibrated like a
+   :attr:`~.options.LiveOptions.calibration_s` seconds of rows are calibrated like a
    take (:meth:`~..runtime.Synthesizer.calibrate`: the height, and the floor
    when the height is given) and the duet starts then, from the first row. The
    values used are the ones the take's metadata carry (``height_m`` and
@@ -26,7 +26,7 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
    A sender that announces its metadata's keys (``stream`` does:
    :data:`~.protocol.META_ANNOUNCE`) and whose metadata the calibration reads
    has not all come (lost on the way) is waited for, at most
-   :data:`META_WAIT_S` seconds past the calibration window; then the
+   :data:`~.stream_meta.META_WAIT_S` seconds past the calibration window; then the
    calibration goes on without it and says so (:attr:`LiveSession.warnings`).
    A sender that announces nothing (any other VMC or OSC sender) is not waited
    for. The tracked dancer's ``role`` (SPEC §3) is the option's, else the
@@ -48,7 +48,7 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
 
 :meth:`LiveSession.finish` ends it: trailing rows of lost devices are dropped
 (with the frames made from them) and it returns the take and the duet
-(:class:`LiveResult`); ``synthesize`` of that take gives that duet.
+(:class:`~.options.LiveResult`); ``synthesize`` of that take gives that duet.
 """
 from __future__ import annotations
 
@@ -57,95 +57,25 @@ import queue
 import threading
 import time
 from collections import deque
-import dataclasses
-from dataclasses import dataclass
 
 import numpy as np
 
 from ..calibration import apply_calibration
 from ..errors import UserError
-from ..formats.limits import FLOOR_RANGE_M, HEIGHT_RANGE_M
 from ..formats.take import Take
 from ..resample import NET_FPS, output_offsets
 from . import ROLES
-from .protocol import META_ANNOUNCE
 from .receiver import Counters, Sample
+from .options import LiveOptions, LiveResult, ignored_senders_text
 from .rows import CausalResampler, Rows, as_read
+from .stream_meta import StreamCalibration
 
-SOURCE_DEVICES = {"vmc": "openxr", "osc": "joints", "xr": "openxr"}
 RATE_WINDOW_S = 1.0  # the input rate is the samples of this last window
-META_WAIT_S = 2.0  # announced metadata not yet come: the calibration waits this long past its window
-# the stream's metadata keys the calibration reads, and the option that overrides each
-CALIBRATION_META = {"devices": "devices", "height_m": "height", "floor_y": "floor_y",
-                    "head_offset_m": "head_offset", "lhand_offset_m": "hand_offset",
-                    "rhand_offset_m": "hand_offset", "role": "role", "head_turn": "head_turn",
-                    "lhand_turn": "hand_turn", "rhand_turn": "hand_turn"}
-
-
-@dataclass(frozen=True)
-class LiveOptions:
-    """What a live session is told. ``source``: ``vmc``, ``osc`` or ``xr``
-    (Blender's VR session); ``height`` (m) and ``floor_y`` (m): given, or None
-    (the stream's metadata, else estimated from the first ``calibration_s``
-    seconds); ``devices``: SPEC §3 devices of the poses (None: the stream's
-    metadata, else :data:`SOURCE_DEVICES`); ``role``: whose points these are
-    (SPEC §3; None: the stream's ``role``, else ``leader``); ``gap_s``: a
-    device unheard for longer is lost; ``record_predictions``: keep the mapping's predictions and the planted
-    feet (for Blender's method view)."""
-
-    source: str = "vmc"
-    height: float | None = None
-    floor_y: float | None = None
-    devices: str | None = None
-    head_offset: tuple | None = None
-    hand_offset: tuple | None = None
-    head_turn: tuple | None = None
-    hand_turn: tuple | None = None
-    role: str | None = None
-    calibration_s: float = 1.0
-    gap_s: float = 0.1
-    models: str | None = None
-    threads: int = 1
-    foot_lock: bool = True
-    hand_ik: bool = True
-    follow_devices: bool = True
-    record_predictions: bool = False
-
-    def synthesis_options(self):
-        from ..runtime import SynthesisOptions
-
-        return SynthesisOptions(models=self.models, threads=self.threads, height=self.height,
-                                foot_lock=self.foot_lock, hand_ik=self.hand_ik, floor_y=self.floor_y,
-                                devices=self.devices, head_offset=self.head_offset, hand_offset=self.hand_offset,
-                                head_turn=self.head_turn, hand_turn=self.hand_turn,
-                                follow_devices=self.follow_devices, role=self.role)
-
-
-@dataclass
-class LiveResult:
-    """What a session leaves: the ``take`` (its metadata reproduce the
-    calibration), the ``duet`` synthesised from it (None when the take is too
-    short for one) and the counters."""
-
-    take: Take
-    duet: object
-    counters: dict
-    latency_ms: tuple  # (median, 99th percentile) of the frames made live, or (nan, nan)
-    steady_ms: tuple = (math.nan, math.nan)  # the same from a second after the calibration (caught up)
-
-
-def ignored_senders_text(ignored) -> str:
-    """``ignored 2 other senders (1,234 packets)`` of :meth:`~.senders.SenderGate.ignored`'s list."""
-    n = len(ignored)
-    return (f"ignored {n} other sender{'s' if n != 1 else ''} "
-            f"({sum(p for _, p in ignored):,} packets)")
-
-
 def _offset_text(v) -> str:
     return ",".join(repr(float(c)) for c in v)
 
 
-class LiveSession:
+class LiveSession(StreamCalibration):
     """See the module docstring. ``synthesizer``: a
     :class:`~..runtime.Synthesizer` (default: one made from the options);
     ``counters``: the receiver's (shared accounting); ``clock``: the clock the
@@ -348,129 +278,6 @@ class LiveSession:
             self.counters.add(samples=1)
         if self.calibration is None and self._can_calibrate(t):
             self._calibrate(rows.n)
-
-    def _known(self, key, option):
-        if option is not None:
-            return True
-        return self.stream_meta.get(key) not in (None, "")
-
-    def missing_meta(self) -> list:
-        """The keys the sender announced (:data:`~.protocol.META_ANNOUNCE`) that
-        the calibration reads, no option overrides and have not come yet."""
-        announced = self.stream_meta.get(META_ANNOUNCE) or ""
-        o = self.options
-        return [k for k in dict.fromkeys(announced.split(","))
-                if k in CALIBRATION_META and getattr(o, CALIBRATION_META[k]) is None and k not in self.stream_meta]
-
-    def _can_calibrate(self, t) -> bool:
-        o = self.options
-        if self._hold_calibration:
-            return False
-        if self.missing_meta() and t < o.calibration_s + META_WAIT_S:
-            return False  # announced and not come (lost on the way): it comes again
-        return t >= o.calibration_s or (self._known("height_m", o.height) and self._known("floor_y", o.floor_y))
-
-    def _meta(self) -> dict:
-        """The stream's metadata the calibration reads (devices, height, floor,
-        offsets), each only when it is a value a take file may carry."""
-        from ..formats.devices import DEVICE_KINDS, META_OFFSET_KEYS, META_TURN_KEYS, parse_offset, parse_turn
-        from ..formats.take import ORIENTATION_VALUES, ORIENTATIONS_KEY
-
-        meta = {}
-        for key, v in self.stream_meta.items():
-            try:
-                if key == "devices" and v in DEVICE_KINDS:
-                    meta[key] = v
-                elif key == "height_m" and HEIGHT_RANGE_M[0] <= float(v) <= HEIGHT_RANGE_M[1]:
-                    meta[key] = float(v)
-                elif key == "floor_y" and abs(float(v)) <= FLOOR_RANGE_M:
-                    meta[key] = v
-                elif key in META_OFFSET_KEYS:
-                    parse_offset(v, key)
-                    meta[key] = v
-                elif key in META_TURN_KEYS:
-                    parse_turn(v, key)
-                    meta[key] = v
-                elif key == ORIENTATIONS_KEY and v in ORIENTATION_VALUES:
-                    meta[key] = v
-            except (ValueError, UserError):
-                continue
-        meta.setdefault("devices", SOURCE_DEVICES.get(self.options.source, "joints"))
-        meta["role"] = self.role()
-        return meta
-
-    def stream_role(self):
-        """The ``role`` the stream's metadata say (None: none, or not a role)."""
-        v = self.stream_meta.get("role")
-        return v if v in ROLES else None
-
-    def role(self) -> str:
-        """The tracked dancer's role: the calibration's once made; before, the
-        option's, else the stream's, else ``leader``."""
-        if self.calibration is not None:
-            return self.calibration.role
-        return self.options.role or self.stream_role() or "leader"
-
-    def _warn_role(self) -> None:
-        """Once: the stream says another role than the one read (a role given
-        wins; one that came after the duet started is too late)."""
-        said = self.stream_meta.get("role")
-        if self._role_warned or said in (None, "") or said == self.role():
-            return
-        self._role_warned = True
-        why = ("not a role" if said not in ROLES else "the role given wins" if self.options.role
-               else "it came after the duet had started")
-        self.warnings.append(f"warning: the stream says role={said}; its points are read as the "
-                             f"{self.role()}'s ({why})")
-
-    def _switch_role(self, role) -> None:
-        """The synthesizer's networks for ``role``, before any frame (timed)."""
-        if role in self._unavailable:
-            raise UserError(f"the stream's take is a {role}'s (role={role}), whose networks cannot be used: "
-                            f"{self._unavailable[role]}")
-        t0 = self.clock()
-        try:
-            self.synth.set_role(role)
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
-        self._live_after = self.clock()
-        self.role_switch_s = self._live_after - t0
-
-    def _calibrate(self, n) -> None:
-        """Calibrate on the first ``n`` rows (as a take: the options, the stream's
-        metadata, else estimated), keep what the take's metadata will say, and
-        read the rows so far into frames."""
-        c = self.synth.calibrate(self.rows.take(n, self._meta()))
-        meta = c.meta()
-        # the height and floor as the take file will say them (rounded), the rest as calibrated
-        calibration = dataclasses.replace(c, height=float(meta["height_m"]), floor_y=float(meta["floor_y"]))
-        if c.role != self.synth.role:
-            self._switch_role(c.role)
-        self.calibration = calibration
-        self.synth.set_calibration(calibration)
-        self._catchup = n  # the rows before: read into frames at once, not live
-        self._calibrated_t = float(self.rows.time[n - 1])
-        missing = self.missing_meta()
-        if missing:
-            self._warn_missing(missing, self._calibrated_t)
-        self._warn_role()
-
-    def _warn_missing(self, missing, t) -> None:
-        c = self.calibration
-        said = []
-        if "devices" in missing:
-            said.append(f"devices {c.devices} (the {self.options.source} default)")
-        if "height_m" in missing:
-            said.append(f"height {c.height:.2f} m ({c.height_source})")
-        if "floor_y" in missing:
-            said.append(f"floor at y = {c.floor_y:+.3f} m ({c.floor_source})")
-        if any(k.endswith("_offset_m") for k in missing):
-            said.append("the default body offsets")
-        if "role" in missing:
-            said.append(f"role {c.role} (the default)")
-        self.warnings.append(f"warning: the sender's take metadata ({', '.join(missing)}) had not come "
-                             f"{t:.1f} s into the take (lost on the way?); calibrated without it: "
-                             f"{', '.join(said)}")
 
     def _work(self, budget_s) -> int:
         """Make the frames the rows so far allow (the catch-up's for at most

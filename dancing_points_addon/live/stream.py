@@ -26,7 +26,8 @@ import numpy as np
 from ..errors import UserError
 from ..formats.take import Take
 from .protocol import META_KEYS, sample_datagrams
-from .session import META_WAIT_S, LiveOptions
+from .stream_meta import META_WAIT_S
+from .options import LiveOptions
 
 # past the receiver's calibration window and its wait for announced metadata, with a second to spare
 META_EVERY_SAMPLE_S = LiveOptions.calibration_s + META_WAIT_S + 1.0
