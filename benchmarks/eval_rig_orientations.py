@@ -78,7 +78,8 @@ def main(argv=None):
     from dancing_points_addon.inputs import load_input
     from dancing_points_addon.formats.take import take_from_motion, write_take
     from dancing_points_addon.formats.take_read import read_take
-    from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+    from dancing_points_addon.runtime import Synthesizer
+    from dancing_points_addon.synthesis_options import SynthesisOptions
     from training.evaluate import test_segments
 
     models = os.environ.get("DP_MODEL_DIR") or str(ROOT / "models")

@@ -247,7 +247,7 @@ def add_audio_arguments(p: argparse.ArgumentParser, live: bool = False) -> None:
 
 
 def calibration_options(o) -> dict:
-    """The :class:`~.runtime.SynthesisOptions` fields of :func:`add_calibration_arguments`'
+    """The :class:`~.synthesis_options.SynthesisOptions` fields of :func:`add_calibration_arguments`'
     options (parsed arguments or a batch job's dict)."""
     get = o.get if isinstance(o, dict) else (lambda k, d=None: getattr(o, k, d))
     tup = lambda v: None if v is None else tuple(float(c) for c in v)  # noqa: E731

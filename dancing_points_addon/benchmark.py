@@ -25,7 +25,8 @@ import time
 import numpy as np
 
 from .nets import MODEL_FILES, load_nets, resolve_model_dir
-from .runtime import SynthesisOptions, Synthesizer
+from .runtime import Synthesizer
+from .synthesis_options import SynthesisOptions
 
 SAMPLE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "samples", "sample_take.csv")
 

@@ -172,7 +172,8 @@ def cmd_synthesize(args) -> int:
 
     from .nets import check_models
     from .duet import duet_motions, save_npz
-    from .runtime import SynthesisOptions, Synthesizer
+    from .runtime import Synthesizer
+    from .synthesis_options import SynthesisOptions
 
     out = args.output
     check_output_path(out)

@@ -11,9 +11,43 @@ import numpy as np
 
 from .features import FPS
 from .scalar_kernels import I3, mat_vec, rot_between_s, rot_scale, smooth01, two_bone_s
-from .skeleton import JOINT_INDEX
+from .skeleton import FEET, JOINT_INDEX
 
 _J = JOINT_INDEX
+# Kinematic contacts (m, m/s, m per frame): a foot point within KIN_HEIGHT of its floor and slower
+# than KIN_SPEED counts as planted (2 cm: a point a few centimetres up crossed the line on a
+# millimetre of input noise and locked a frame earlier or later; models/README.md, docs/experiments.md).
+KIN_HEIGHT, KIN_SPEED, KIN_FLOOR_RISE = 0.02, 1.5, 0.001
+
+
+class KinematicContacts:
+    """Contact evidence from the predicted motion itself (causal), one dancer:
+    a foot point low above its floor (the lowest height seen lately, rising
+    :data:`KIN_FLOOR_RISE` a frame) and slow since the last frame counts as
+    planted, whatever the network's contact output says."""
+
+    def __init__(self):
+        self.prev = None  # last frame's four foot points (plain floats)
+        self.floor = None  # per foot point, its floor level as seen so far
+
+    def __call__(self, pos) -> np.ndarray:
+        """The four foot points' evidence (1 planted, 0 not) of the pose ``pos (31, 3)``."""
+        feet = pos.take(FEET, axis=0).tolist()  # four points: plain floats cost less than arrays
+        prev, self.prev = self.prev, feet
+        floor = self.floor
+        if floor is None:
+            floor = [y for _, y, _ in feet]
+        else:
+            floor = [min(f + KIN_FLOOR_RISE, y) for f, (_, y, _) in zip(floor, feet)]
+        self.floor = floor
+        if prev is None:
+            return np.zeros(4)
+        out = []
+        for (x, y, z), (px, _, pz), f in zip(feet, prev, floor):
+            dx, dz = x - px, z - pz
+            speed = sqrt(dx * dx + dz * dz) * FPS
+            out.append(1.0 if y - f < KIN_HEIGHT and speed < KIN_SPEED else 0.0)
+        return np.array(out)
 
 
 def _moved2(p, q):

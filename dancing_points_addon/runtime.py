@@ -10,17 +10,16 @@ pose at ``t − 1``; its future keys ``t − 1 + k`` are the current input (key 
 and the mapping network's prediction from the input up to ``t`` (keys ≥ 2). The
 follower's key 1 comes from the previous step's mapping.
 
-Why this module is over 500 lines: it is :class:`Synthesizer`, one per-frame
-state machine whose steps (cleaning the input, the mapping, her placement, the
-two trackers, pose recovery) read and write the same state. What stands alone
-lives beside it: the duet (:mod:`.duet`), a tracker's state
-(:mod:`.dancer_state`), her placement and holds (:mod:`.follower`), the foot
-lock (:mod:`.foot_lock`), pose recovery (:mod:`.pose`).
+What a user chooses is :class:`~.synthesis_options.SynthesisOptions`. The
+stages a frame passes live beside this module: the input cleaned
+(:mod:`.input_cleaning`), a tracker's state (:mod:`.dancer_state`), her
+placement (:mod:`.follower`), her hips and holds (:mod:`.partner_pose`), the
+foot lock (:mod:`.foot_lock`), pose recovery (:mod:`.pose`), the devices'
+turns followed (:mod:`.device_follow`) and the duet (:mod:`.duet`).
 """
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from typing import NamedTuple
 from math import sqrt
 
@@ -29,24 +28,21 @@ import numpy as np
 from . import features as F
 from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate, check_role, height_from_head
 from .dancer_state import DancerState, advance_together
-from .device_follow import DeviceFollow, hand_flex, limit_rotation
+from .device_follow import DeviceFollow, hand_flex
 from .duet import Duet, DuetFrame
+from .foot_lock import KinematicContacts
+from .input_cleaning import InputCleaner
 from .follower import OUT_SMOOTH, FollowerOptions, Placement, Separation
 from .partner_pose import HandHold, HipTwist, hip_heading_from_probs
+from .synthesis_options import SynthesisOptions
 from .nets import contact_floor_levels, load_nets
 from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose,
                    move_keeping_feet)
-from .representation import (hip_frame, root_from_head,
-                             root_relative, to_local, to_world)
-from .rotations import quat_to_matrix, rotation_angle
-from .skeleton import FEET, JOINT_INDEX, LOWER_BODY, TRACKED
+from .representation import (hip_frame, to_local, to_world)
+from .rotations import quat_to_matrix
+from .skeleton import JOINT_INDEX, LOWER_BODY, TRACKED
 
 CALIBRATION_FRAMES = 30  # live, without a calibration: the height is estimated over the first second
-# Kinematic contacts (m, m/s, m per frame): a foot point within KIN_HEIGHT of its floor and slower
-# than KIN_SPEED counts as planted. 2 cm (3.5 cm before 2026-11-28): a point a few centimetres up
-# crossed the line on a millimetre of input noise and locked a frame earlier or later (val, fit-trained
-# networks: the leader's change under 1 mm noise 1.43 → 1.19 cm at p99; docs/experiments.md).
-KIN_HEIGHT, KIN_SPEED, KIN_FLOOR_RISE = 0.02, 1.5, 0.001
 # The tracked dancer's foot lock (``foot_lock.TRACKED_FOOT_LOCK``) reads the contact network's
 # probabilities of him beside his tracker's contacts and the kinematic evidence (the highest of
 # the three), and plants his feet at most TRACKED_LOCK_FLOOR above his floor levels (the contact
@@ -56,15 +52,9 @@ TRACKED_LOCK_FLOOR = 0.01
 DEFAULT_FLOOR_LEVELS = (0.07, 0.04, 0.07, 0.04)  # ankle, ball (m): without the contact network's levels
 # The tracked dancer's head point reaches its device: before his foot lock, his body moves this share
 # of the way there (at most HEAD_REACH_MAX metres), his legs keeping his ankles (pose.move_keeping_feet);
-# the neck then turns the rest. Without it the rigid spine left the head 1.7 cm off its device (val,
-# fit-trained networks; shares 0 / 0.5 / 0.7 / 0.85 / 1: full body 7.72 / 7.55 / 7.51 / 7.49 / 7.49
-# cm, jitter 174 / 176 / 179 / 181 / 184 m/s³; docs/experiments.md).
+# the neck then turns the rest (without it the rigid spine left the head off its device; the shares
+# tried are in docs/experiments.md).
 HEAD_REACH, HEAD_REACH_MAX = 0.7, 0.05
-# A device that comes back after a loss blends in from where its stand-in was: the gap
-# closes by this share a frame, at least RETURN_MIN and at most RETURN_MAX metres (or the
-# head's turn, RETURN_TURN radians): a hand 0.9 m off is back within 0.6 s, moving no
-# faster than the dancer plus 4 cm a frame.
-RETURN_RATE, RETURN_MIN, RETURN_MAX, RETURN_TURN = 0.3, 0.003, 0.04, 0.1
 
 
 def _meta_json(net, key):
@@ -76,46 +66,6 @@ def _meta_json(net, key):
         return json.loads(v)
     except (TypeError, ValueError):
         return None
-
-
-@dataclass(frozen=True)
-class SynthesisOptions:
-    """What a user chooses for a synthesis: one object from the command line,
-    the batch jobs and the Blender operator to the :class:`Synthesizer`.
-
-    ``models``: the folder of the networks (None: ``$DP_MODEL_DIR``, else the
-    bundled ``models/``); ``threads``: ONNX Runtime threads; ``height``: the
-    tracked dancer's standing height in metres (None or "auto": the take's
-    ``height_m``, else estimated from the take, see :mod:`.calibration`);
-    ``floor_y``: where the real floor lies in the take (None: the take's
-    ``floor_y``, else estimated when the height is given, else y = 0);
-    ``devices``: what the take's poses are, SPEC §3 (None: the take's
-    ``devices``, else ``joints``); ``head_offset`` / ``hand_offset``: the
-    wearer's own body offsets for ``openxr`` devices (x, y, z metres; see
-    :mod:`.formats.devices`), or ``offsets``, all three at once (a
-    :class:`~.formats.devices.DeviceOffsets`); ``foot_lock``: contact-based foot locking;
-    ``hand_ik``: put the leader's head and wrists exactly on the input
-    (two-bone arm IK, neck turn; on by default: it is what the paper scores,
-    and the measured full-body error falls from 13.8 to 8.3 cm);
-    ``follow_devices``: the tracked dancer's head and hands turn as the devices
-    do (:mod:`.device_follow`); ``role``: whose three points the take holds,
-    SPEC §3 (None: the take's ``role``, else ``leader``).
-    """
-
-    models: str | None = None
-    threads: int = 1
-    height: float | str | None = None
-    foot_lock: bool = True
-    hand_ik: bool = True
-    floor_y: float | None = None
-    devices: str | None = None
-    head_offset: tuple | None = None
-    hand_offset: tuple | None = None
-    offsets: object | None = None
-    head_turn: tuple | None = None
-    hand_turn: tuple | None = None
-    follow_devices: bool = True
-    role: str | None = None
 
 
 class _Read(NamedTuple):
@@ -218,6 +168,7 @@ class Synthesizer:
         # Each dancer's rest skeleton, from its (FK-consistent) default pose.
         self.bone_vectors = {r: bone_vectors_from_pose(F.pose_positions(p), F.pose_rotations(p))
                              for r, p in self.default_pose.items()}
+        self.cleaner = InputCleaner(F.pose_positions(self.default_pose["leader"])[TRACKED])
         self._recovery = (PoseRecovery(self.bone_vectors["leader"]), PoseRecovery(self.bone_vectors["follower"]))
         # each dancer's floor level per foot point (training scale), from the contact network
         contacts = nets.get("contacts")
@@ -278,15 +229,10 @@ class Synthesizer:
         self.leader = DancerState(self.nets["leader"], self.default_pose["leader"])
         self.follower = DancerState(self.nets["follower"], self.default_pose["follower"])
         self.prev_follower = None  # (root, tracked_local) predicted for frame t
-        self.last_valid = None  # last valid (head position, head rotation), input space
-        self.last_hand = [None, None]  # last valid (hand position, head root) per hand
+        self.cleaner.reset()
         self.prev_leader_pred = None  # the mapping's prediction of the next frame (root, tracked local)
         self._head_heights = []
         self._calibration = None
-        self._prev_used = None  # the (tracked points, head rotation) used on the last frame
-        self._prev_valid = None
-        self._return = [None, None, None]  # per device: the gap left when it came back (a 3-vector)
-        self._return_turn = None  # the head's turn left when it came back (3, 3)
         self._devices_now = (None, None, None)  # this frame's measured device rotations (head, hands)
         devices = self.calibration.devices if self.calibration is not None else "joints"
         self._follow = None
@@ -295,8 +241,7 @@ class Synthesizer:
         if self.options.follow_devices and any(self._followed):
             self._follow = DeviceFollow(self.bone_vectors["leader"], "hand" if devices == "openxr" else "wrist",
                                         hand_flex=hand_flex(F.pose_rotations(self.default_pose["leader"])))
-        self._prev_feet = [None, None]
-        self._floor = [None, None]
+        self._kinematic = (KinematicContacts(), KinematicContacts())
         self._lockers = None
         self._effector = None
         fo = self.follower_options
@@ -374,91 +319,6 @@ class Synthesizer:
         out = {r: bv / self.scale() for r, bv in self.bone_vectors.items()}
         return out if self.role == "leader" else {"leader": out["follower"], "follower": out["leader"]}
 
-    # -- input cleaning --------------------------------------------------------
-    def _clean(self, positions, quats, valid):
-        """Fill lost devices (SPEC §3 gaps) from the mapping network's last
-        prediction of this frame (the leader's future trajectory): the head
-        follows the predicted root and height, turning its last orientation by the
-        predicted change of heading; a hand takes its predicted place relative to
-        the head. Before any prediction exists, devices are held. Returns tracked
-        positions (3, 3), the head device rotation and its root (input space)."""
-        pred = self.prev_leader_pred
-        inv = 1.0 / self.scale()
-        if valid[0]:
-            head_pos = np.asarray(positions[0], dtype=np.float64)
-            head_rot = quat_to_matrix(quats[0])
-            root = root_from_head(head_pos, head_rot)
-        elif pred is not None and self.last_valid is not None:
-            root = pred[0] * np.array([inv, inv, 1.0, 1.0])
-            head_pos = to_world(pred[1][:1] * inv, root)[0]
-            last_rot = self.last_valid[1]
-            last_root = root_from_head(self.last_valid[0], last_rot)
-            turn = root_relative(last_root, root)  # heading change as (cos, sin)
-            head_rot = np.array([[turn[2], 0.0, turn[3]], [0.0, 1.0, 0.0], [-turn[3], 0.0, turn[2]]]) @ last_rot
-        elif self.last_valid is not None:
-            head_pos, head_rot = self.last_valid
-            root = root_from_head(head_pos, head_rot)
-        else:
-            head_pos = np.array([0.0, F.pose_positions(self.default_pose["leader"])[TRACKED[0], 1] * inv, 0.0])
-            head_rot = np.diag([-1.0, 1.0, -1.0])
-            root = root_from_head(head_pos, head_rot)
-        if valid[0]:
-            self.last_valid = (head_pos, head_rot)
-        tracked = np.array(positions, dtype=np.float64)  # rows of lost devices are replaced below
-        if not valid[0]:
-            tracked[0] = head_pos
-        if self._prev_used is not None and (valid[0] and not self._prev_valid[0] or self._return[0] is not None
-                                            or self._return_turn is not None):
-            tracked[0], head_rot = self._blend_head(tracked[0], head_rot, valid[0])
-            root = root_from_head(tracked[0], head_rot)
-        for i in (1, 2):
-            if valid[i]:
-                self.last_hand[i - 1] = (tracked[i].copy(), root)
-                if self._prev_used is not None and (not self._prev_valid[i] or self._return[i] is not None):
-                    tracked[i] = self._blend_point(i, tracked[i])
-                continue
-            self._return[i] = None
-            if pred is not None:
-                local = pred[1][i] * inv
-            elif self.last_hand[i - 1] is not None:
-                local = to_local(self.last_hand[i - 1][0][None], self.last_hand[i - 1][1])[0]
-            else:  # never seen: the default pose's hand
-                local = F.pose_positions(self.default_pose["leader"])[TRACKED[i]] * inv
-            tracked[i] = to_world(local[None], root)[0]
-        self._prev_used = (tracked, head_rot)
-        self._prev_valid = tuple(bool(v) for v in valid)
-        return tracked, head_rot, root
-
-    def _blend_point(self, i, real):
-        """Device ``i``'s point this frame: where it really is, plus what is left of
-        the gap to its stand-in when it came back (:data:`RETURN_RATE`)."""
-        gap = self._return[i]
-        if gap is None:  # it is back on this frame: the gap from last frame's stand-in
-            gap = self._prev_used[0][i] - real
-        n = float(np.sqrt(gap @ gap))
-        if n <= RETURN_MIN:
-            self._return[i] = None
-            return real
-        self._return[i] = gap * (1.0 - min(RETURN_MAX, max(RETURN_MIN, RETURN_RATE * n)) / n)
-        return real + self._return[i]
-
-    def _blend_head(self, head_pos, head_rot, valid):
-        """The head's point and rotation this frame, blended in after a loss like
-        the hands' (:meth:`_blend_point`), its turn too."""
-        if not valid:
-            self._return[0] = self._return_turn = None
-            return head_pos, head_rot
-        pos = self._blend_point(0, head_pos)
-        turn = self._return_turn
-        if turn is None:
-            turn = self._prev_used[1] @ head_rot.T
-        a = float(rotation_angle(turn))
-        if a <= 1e-3:
-            self._return_turn = None
-            return pos, head_rot
-        self._return_turn = limit_rotation(turn, a - min(RETURN_TURN, max(1e-3, RETURN_RATE * a)))
-        return pos, self._return_turn @ head_rot
-
     # -- one frame -------------------------------------------------------------
     def step(self, positions, quats, valid=(True, True, True)):
         """One 30 Hz frame of the take's device poses: positions (3, 3),
@@ -498,13 +358,14 @@ class Synthesizer:
         return self._advance(read, self._input_nets(read.x))
 
     def _read(self, positions, quats, valid) -> _Read:
-        """The input side of a frame: the devices cleaned (:meth:`_clean`), at
+        """The input side of a frame: the devices cleaned (:class:`~.input_cleaning.InputCleaner`), at
         the tracker's scale, into the input history, and the mapping's input.
         It needs the networks' outputs of the last frame only when a device is
-        lost (:meth:`_clean` fills it from the mapping's prediction), so
+        lost (the cleaner fills it from the mapping's prediction), so
         :meth:`synthesize` reads the frames between losses ahead and runs the
         networks on the input (:meth:`_input_nets`) once for all of them."""
-        tracked, head_rot, root = self._clean(positions, quats, valid)
+        tracked, head_rot, root = self.cleaner.clean(positions, quats, valid, self.prev_leader_pred,
+                                                     1.0 / self.scale())
         devices = None
         if self._follow is not None:  # what the devices measure this frame, for the head and hands to follow
             use = self._followed
@@ -647,11 +508,11 @@ class Synthesizer:
                 # her steps: planted and lifted as the contact network says, on her floor
                 contacts = self._contact_p[4:]
             else:
-                contacts = np.maximum(contacts, self._kinematic_contacts(who, pos))
+                contacts = np.maximum(contacts, self._kinematic[who](pos))
                 if who == 0 and self._contact_p is not None:  # his steps: the contact network's too
                     contacts = np.maximum(contacts, self._contact_p[:4])
                 if who == 1 and fo is not None and fo.steps.lock_floor >= 0:  # her new locks go on her floor
-                    self._lockers[1].floor = [f + fo.steps.lock_floor for f in self._floor[1]]
+                    self._lockers[1].floor = [f + fo.steps.lock_floor for f in self._kinematic[1].floor]
             pos, rot = self._lockers[who].step(pos, rot, contacts)
         pos, rot = self._floor_guards[who](pos, rot)  # no foot through the floor
         if who == 1 and self._out_twist is not None:  # her thighs' twist within the real follower's
@@ -678,29 +539,6 @@ class Synthesizer:
             return None
         nan = np.full(3, np.nan)
         return np.array([nan, nan if tg[0] is None else tg[0], nan if tg[1] is None else tg[1]])
-
-    def _kinematic_contacts(self, who, pos):
-        """Contact evidence from the predicted motion itself (causal): a foot point
-        low above its floor (the lowest height seen lately, rising 3 cm/s) and slow
-        since the last frame counts as planted, whatever the network's contact
-        output says."""
-        feet = pos.take(FEET, axis=0).tolist()  # four points: plain floats cost less than arrays
-        prev = self._prev_feet[who]
-        self._prev_feet[who] = feet
-        floor = self._floor[who]
-        if floor is None:
-            floor = [y for _, y, _ in feet]
-        else:
-            floor = [min(f + KIN_FLOOR_RISE, y) for f, (_, y, _) in zip(floor, feet)]
-        self._floor[who] = floor
-        if prev is None:
-            return np.zeros(4)
-        out = []
-        for (x, y, z), (px, _, pz), f in zip(feet, prev, floor):
-            dx, dz = x - px, z - pz
-            speed = sqrt(dx * dx + dz * dz) * F.FPS
-            out.append(1.0 if y - f < KIN_HEIGHT and speed < KIN_SPEED else 0.0)
-        return np.array(out)
 
     def leader_keys(self, root, cur_local, l_roots, l_tr):
         """Leader's key inputs: the current input frame, then the mapping's prediction."""

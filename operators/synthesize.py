@@ -17,7 +17,8 @@ from bpy.props import BoolProperty, StringProperty
 
 from ..dancing_points_addon.errors import InputError, UserError, error_message
 from ..dancing_points_addon.nets import MODEL_DIR, MODEL_ENV, ModelError
-from ..dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from ..dancing_points_addon.runtime import Synthesizer
+from ..dancing_points_addon.synthesis_options import SynthesisOptions
 from . import bake, method_view
 from .props import active_take
 from .take_collection import take_from_collection

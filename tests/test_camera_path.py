@@ -11,7 +11,8 @@ from dancing_points_addon import blender_math as bm
 from dancing_points_addon import camera_path as cp
 from dancing_points_addon.inputs import load_input
 from dancing_points_addon.resample import resample_take
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.synthesis_options import SynthesisOptions
 from dancing_points_addon.skeleton import JOINT_NAMES
 
 SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"

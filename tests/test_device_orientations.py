@@ -12,7 +12,8 @@ from dancing_points_addon.inputs import HAND_BONES
 from dancing_points_addon.formats.take import Take, write_take
 from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.rotations import matrix_to_quat, quat_to_matrix
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.synthesis_options import SynthesisOptions
 from support.helpers import run_cli
 from test_runtime import test_take
 

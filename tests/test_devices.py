@@ -17,7 +17,8 @@ from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.representation import DEVICE_FROM_HEAD
 from dancing_points_addon.resample import resample_take
 from dancing_points_addon.rotations import quat_to_matrix
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.synthesis_options import SynthesisOptions
 from dancing_points_addon.skeleton import FEET, JOINT_INDEX, TRACKED
 from support.helpers import run_cli
 from test_runtime import test_take

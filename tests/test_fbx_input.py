@@ -45,7 +45,8 @@ from dancing_points_addon.formats.bvh import write_bvh  # noqa: E402
 from dancing_points_addon.inputs import load_input  # noqa: E402
 from dancing_points_addon.formats.take import take_from_motion, take_orientations_usable, write_take  # noqa: E402
 from dancing_points_addon.formats.take_read import read_take  # noqa: E402
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer  # noqa: E402
+from dancing_points_addon.runtime import Synthesizer  # noqa: E402
+from dancing_points_addon.synthesis_options import SynthesisOptions  # noqa: E402
 
 MM = 1e-3
 # Blender's FBX exporter simplifies the keys: the duet of its file lies a few millimetres from the

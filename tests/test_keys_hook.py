@@ -10,7 +10,8 @@ from conftest import ROOT
 from dancing_points_addon.formats.take import Take
 from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.nets import load_nets
-from dancing_points_addon.runtime import KeySource, SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import KeySource, Synthesizer
+from dancing_points_addon.synthesis_options import SynthesisOptions
 from training.evaluate import LeaderTrajKeys, PastInputKeys
 
 SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"

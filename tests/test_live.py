@@ -39,7 +39,8 @@ from dancing_points_addon.live.stream import stream_rows, stream_take
 from dancing_points_addon.live.xr import motion_to_xr, xr_to_motion
 from dancing_points_addon.resample import resample_take
 from dancing_points_addon.rotations import quat_to_matrix
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.synthesis_options import SynthesisOptions
 from support.helpers import free_udp_port
 
 SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"

@@ -38,7 +38,8 @@ from dancing_points_addon.live import protocol as P  # noqa: E402
 from dancing_points_addon.live.receiver import Sample  # noqa: E402
 from dancing_points_addon.live.stream import stream_rows  # noqa: E402
 from dancing_points_addon.live.xr import motion_to_xr  # noqa: E402
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer  # noqa: E402
+from dancing_points_addon.runtime import Synthesizer  # noqa: E402
+from dancing_points_addon.synthesis_options import SynthesisOptions  # noqa: E402
 from dancing_points_addon.skeleton import JOINT_NAMES  # noqa: E402
 
 SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"

@@ -25,7 +25,8 @@ from conftest import MODELS, SALSA
 from dancing_points_addon.features import FUTURE
 from dancing_points_addon.inputs import load_input
 from dancing_points_addon.resample import resample_take
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.synthesis_options import SynthesisOptions
 from dancing_points_addon.skeleton import FEET
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

@@ -26,7 +26,8 @@ from conftest import MODELS
 
 from dancing_points_addon.nets import MODEL_FILES, OnnxNet, load_nets
 from dancing_points_addon.onnx_float import OnnxRewriteError, float_compute
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.synthesis_options import SynthesisOptions
 
 SIGMA = 2e-6  # m
 

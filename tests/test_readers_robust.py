@@ -44,7 +44,8 @@ def sample():
 
 @pytest.fixture(scope="module")
 def sample_duet(sample):
-    from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+    from dancing_points_addon.runtime import Synthesizer
+    from dancing_points_addon.synthesis_options import SynthesisOptions
     return Synthesizer(SynthesisOptions(models=MODELS)).synthesize(sample)
 
 
@@ -69,7 +70,8 @@ def test_epoch_times_resample_like_zero_based(sample):
 
 
 def test_epoch_times_synthesize_core_and_cli(sample, sample_duet, tmp_path):
-    from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+    from dancing_points_addon.runtime import Synthesizer
+    from dancing_points_addon.synthesis_options import SynthesisOptions
     duet = Synthesizer(SynthesisOptions(models=MODELS)).synthesize(_shifted(sample))
     assert duet.n_frames == sample_duet.n_frames == 343
     for k in ("leader_positions", "follower_positions"):

@@ -11,7 +11,8 @@ from dancing_points_addon.formats.asf_amc import load_amc
 from dancing_points_addon.formats.take import Take, take_from_motion, write_take
 from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.nets import MODEL_DIR, ROLE_DIRS, check_models
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.synthesis_options import SynthesisOptions
 from dancing_points_addon.skeleton import PARENTS, TRACKED, Motion
 from support.helpers import run_cli
 from training.dataset import split_range

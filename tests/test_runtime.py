@@ -9,7 +9,8 @@ from dancing_points_addon.formats.asf_amc import load_amc
 from training.dataset import split_range
 from dancing_points_addon.representation import root_from_motion
 from dancing_points_addon.nets import MODEL_DIR, load_nets
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.synthesis_options import SynthesisOptions
 from dancing_points_addon.skeleton import TRACKED, Motion, bone_lengths_from_positions
 from dancing_points_addon.formats.take import Take, take_from_motion
 from dancing_points_addon.formats.take_read import read_take

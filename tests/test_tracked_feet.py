@@ -16,7 +16,8 @@ import numpy as np
 
 from conftest import MODELS
 
-from dancing_points_addon.runtime import SynthesisOptions, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.synthesis_options import SynthesisOptions
 from dancing_points_addon.skeleton import FEET
 
 

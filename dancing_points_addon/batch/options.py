@@ -3,7 +3,7 @@ options each job carries to its worker.
 
 The parent turns the parsed command line into one plain dict, :func:`job_options`
 (sent with every job, see :mod:`.messages`); a worker turns it back into
-:class:`~..runtime.SynthesisOptions` with :func:`synthesis_options` (the core
+:class:`~..synthesis_options.SynthesisOptions` with :func:`synthesis_options` (the core
 converter and the Blender side's ``convert_job`` alike).
 """
 from __future__ import annotations
@@ -96,9 +96,9 @@ def job_song(o: dict, take):
 
 
 def synthesis_options(o: dict, take_height=None):
-    """The :class:`~..runtime.SynthesisOptions` of a job's options (``job_options``)."""
+    """The :class:`~..synthesis_options.SynthesisOptions` of a job's options (``job_options``)."""
     from ..argtypes import calibration_options
-    from ..runtime import SynthesisOptions
+    from ..synthesis_options import SynthesisOptions
 
     return SynthesisOptions(models=o["models"], threads=int(o.get("threads") or 1),
                             height=o.get("height") or take_height, foot_lock=not o.get("no_foot_lock"),

@@ -40,7 +40,7 @@ class LiveOptions:
     record_predictions: bool = False
 
     def synthesis_options(self):
-        from ..runtime import SynthesisOptions
+        from ..synthesis_options import SynthesisOptions
 
         return SynthesisOptions(models=self.models, threads=self.threads, height=self.height,
                                 foot_lock=self.foot_lock, hand_ik=self.hand_ik, floor_y=self.floor_y,
