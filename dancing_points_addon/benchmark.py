@@ -51,9 +51,9 @@ class _TimedSynth(Synthesizer):
         self._clocks = clocks
         super().__init__(*a, **k)
 
-    def _recover(self, who, pos, rot, contacts, targets):
+    def _recover(self, stage, pos, rot, contacts, targets):
         t = time.perf_counter()
-        out = super()._recover(who, pos, rot, contacts, targets)
+        out = super()._recover(stage, pos, rot, contacts, targets)
         self._clocks["recovery"][0] += time.perf_counter() - t
         return out
 

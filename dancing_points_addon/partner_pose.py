@@ -11,6 +11,7 @@ from math import atan2, cos, hypot, pi, sin
 import numpy as np
 
 from .follower import PELVIS, HipOptions, HoldOptions
+from .foot_lock import KinematicContacts
 from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, WRISTS
 
 
@@ -195,3 +196,36 @@ class HandHold:
             self._offset[j] = off
             out[j] = np.array([a + b for a, b in zip(fw, off)])
         return out
+
+
+class PartnerPose:
+    """The partner's pose after her tracker's step and pose recovery, the last
+    stage of her frame: her feet locked (``locker``, a
+    :class:`~.foot_lock.FootLocker`; None without foot locking) as the contact
+    network times her steps (``net_steps``; else on her tracker's contacts and
+    her own motion), no foot through the floor (``guard``), her thighs' twist
+    within ``out_twist`` (radians per leg bone, ``leg_joints``: her
+    :class:`~.pose.LegJoints`; None: not limited) and her hands in a hold
+    (``effector``, :class:`~.ik.EndEffectorIK`; None without holds)."""
+
+    def __init__(self, locker, guard, effector, net_steps, out_twist, leg_joints):
+        self.locker, self.guard, self.effector = locker, guard, effector
+        self.net_steps, self.out_twist, self.leg_joints = net_steps, out_twist, leg_joints
+        self.kinematic = KinematicContacts()
+
+    def __call__(self, pos, rot, contacts, targets, contact_p):
+        """Her pose after the stage; ``contacts``: her tracker's, ``targets``:
+        her wrists' in a hold (or None), ``contact_p``: the contact network's
+        probabilities (hers the last four)."""
+        if self.locker is not None:
+            if self.net_steps:  # her steps: planted and lifted as the contact network says, on her floor
+                contacts = contact_p[4:]
+            else:
+                contacts = np.maximum(contacts, self.kinematic(pos))
+            pos, rot = self.locker.step(pos, rot, contacts)
+        pos, rot = self.guard(pos, rot)  # no foot through the floor
+        if self.out_twist is not None:  # her thighs' twist within the real follower's
+            pos, rot = self.leg_joints.twist(pos, rot, self.out_twist)
+        if targets is not None and self.effector is not None:
+            pos, rot = self.effector.step(pos, rot, targets)
+        return pos, rot

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 from typing import NamedTuple
-from math import sqrt
 
 import numpy as np
 
@@ -30,14 +29,13 @@ from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate
 from .dancer_state import DancerState, advance_together
 from .device_follow import DeviceFollow, hand_flex
 from .duet import Duet, DuetFrame
-from .foot_lock import KinematicContacts
 from .input_cleaning import InputCleaner
 from .follower import OUT_SMOOTH, FollowerOptions, Placement, Separation
-from .partner_pose import HandHold, HipTwist, hip_heading_from_probs
+from .partner_pose import HandHold, HipTwist, PartnerPose, hip_heading_from_probs
 from .synthesis_options import SynthesisOptions
+from .tracked_pose import TrackedPose
 from .nets import contact_floor_levels, load_nets
-from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose,
-                   move_keeping_feet)
+from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose)
 from .representation import (hip_frame, to_local, to_world)
 from .rotations import quat_to_matrix
 from .skeleton import JOINT_INDEX, LOWER_BODY, TRACKED
@@ -50,11 +48,6 @@ CALIBRATION_FRAMES = 30  # live, without a calibration: the height is estimated 
 # missed steps on bodies it never saw (models/README.md).
 TRACKED_LOCK_FLOOR = 0.01
 DEFAULT_FLOOR_LEVELS = (0.07, 0.04, 0.07, 0.04)  # ankle, ball (m): without the contact network's levels
-# The tracked dancer's head point reaches its device: before his foot lock, his body moves this share
-# of the way there (at most HEAD_REACH_MAX metres), his legs keeping his ankles (pose.move_keeping_feet);
-# the neck then turns the rest (without it the rigid spine left the head off its device; the shares
-# tried are in docs/experiments.md).
-HEAD_REACH, HEAD_REACH_MAX = 0.7, 0.05
 
 
 def _meta_json(net, key):
@@ -233,7 +226,6 @@ class Synthesizer:
         self.prev_leader_pred = None  # the mapping's prediction of the next frame (root, tracked local)
         self._head_heights = []
         self._calibration = None
-        self._devices_now = (None, None, None)  # this frame's measured device rotations (head, hands)
         devices = self.calibration.devices if self.calibration is not None else "joints"
         self._follow = None
         # which devices' orientations the tracked dancer follows (those that carry one)
@@ -241,7 +233,6 @@ class Synthesizer:
         if self.options.follow_devices and any(self._followed):
             self._follow = DeviceFollow(self.bone_vectors["leader"], "hand" if devices == "openxr" else "wrist",
                                         hand_flex=hand_flex(F.pose_rotations(self.default_pose["leader"])))
-        self._kinematic = (KinematicContacts(), KinematicContacts())
         self._lockers = None
         self._effector = None
         fo = self.follower_options
@@ -286,6 +277,10 @@ class Synthesizer:
             limits[1] = out_twist  # the thigh (a chain: hip joint, thigh, shin, foot, toes)
             self._out_twist = np.radians(limits).tolist()
             self._leg_joints = self._leg_joints or LegJoints(self.bone_vectors["follower"])
+        lockers = self._lockers or (None, None)
+        self._tracked = TrackedPose(lockers[0], self._floor_guards[0], self._effector, self._follow)
+        self._partner = PartnerPose(lockers[1], self._floor_guards[1], self._fol_effector, self._net_steps,
+                                    self._out_twist, self._leg_joints)
         self.keys.reset(self)
 
     def set_calibration(self, calibration: Calibration | None) -> None:
@@ -412,7 +407,7 @@ class Synthesizer:
         networks on it, rows of one frame): both dancers one step on."""
         root, s, tracked_s, y = read.root, read.scale, read.tracked, outs["mapping"]
         if read.devices is not None:
-            self._devices_now = read.devices
+            self._tracked.devices = read.devices
         if self.t == 0:
             self.leader.place(root)
         if self._net_steps:
@@ -468,8 +463,9 @@ class Synthesizer:
             self._leg_joints.hips(*rigid[1])
         if self._hip_twist is not None:  # her hips towards where the hip-heading network says she faces
             self._hip_twist.step(*rigid[1], hip_heading_from_probs(outs["hip"][0], root))
-        lp, lr = self._recover(0, *rigid[0], lc, tracked_s)
-        fp, fr = self._recover(1, *rigid[1], fc, self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
+        lp, lr = self._recover(self._tracked, *rigid[0], lc, tracked_s)
+        fp, fr = self._recover(self._partner, *rigid[1], fc,
+                               self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
         if self._arm_limit is not None:  # her arms no faster than a real dancer's
             fp, fr = self._arm_limit.step(fp, fr)
         if self._out_smooth is not None:
@@ -492,39 +488,11 @@ class Synthesizer:
         out = [[lock is not None for side in locker.locks for lock in side] for locker in self._lockers]
         return out if self.role == "leader" else out[::-1]
 
-    def _recover(self, who, pos, rot, contacts, targets):
-        """Of dancer ``who`` (0 leader, 1 follower), after pose recovery (Appendix
-        B: a consistent skeleton pose): the tracked dancer moved towards his
-        head device (:data:`HEAD_REACH`), foot locking, then head/wrist IK (the
-        leader's on the input, the follower's hands in a hold)."""
-        if who == 0 and self._effector is not None and HEAD_REACH > 0.0 and targets is not None:
-            d = (targets[0] - pos[TRACKED[0]]) * HEAD_REACH
-            n = sqrt(float(d @ d))
-            if n > 1e-9 and n == n:  # (NaN: no head target)
-                pos, rot = move_keeping_feet(pos, rot, d if n <= HEAD_REACH_MAX else d * (HEAD_REACH_MAX / n))
-        if self._lockers is not None:
-            fo = self.follower_options
-            if who == 1 and self._net_steps:
-                # her steps: planted and lifted as the contact network says, on her floor
-                contacts = self._contact_p[4:]
-            else:
-                contacts = np.maximum(contacts, self._kinematic[who](pos))
-                if who == 0 and self._contact_p is not None:  # his steps: the contact network's too
-                    contacts = np.maximum(contacts, self._contact_p[:4])
-                if who == 1 and fo is not None and fo.steps.lock_floor >= 0:  # her new locks go on her floor
-                    self._lockers[1].floor = [f + fo.steps.lock_floor for f in self._kinematic[1].floor]
-            pos, rot = self._lockers[who].step(pos, rot, contacts)
-        pos, rot = self._floor_guards[who](pos, rot)  # no foot through the floor
-        if who == 1 and self._out_twist is not None:  # her thighs' twist within the real follower's
-            pos, rot = self._leg_joints.twist(pos, rot, self._out_twist)
-        if targets is not None:
-            effector = self._effector if who == 0 else self._fol_effector
-            if effector is not None:
-                pos, rot = effector.step(pos, rot, targets)
-        if who == 0 and self._follow is not None:  # his head and hands turned as the devices are
-            head, lh, rh = self._devices_now
-            pos, rot = self._follow.step(pos, rot, head, (lh, rh))
-        return pos, rot
+    def _recover(self, stage, pos, rot, contacts, targets):
+        """One dancer's pose after pose recovery (Appendix B: a consistent
+        skeleton pose) through its stage (:class:`~.tracked_pose.TrackedPose`,
+        :class:`~.partner_pose.PartnerPose`): feet, floor, IK."""
+        return stage(pos, rot, contacts, targets, self._contact_p)
 
     def _hold_targets(self, leader_pos, follower_pos, l_tr, f_tr, l_roots, f_roots):
         """The follower's wrist targets of a hand hold (head: NaN, untouched) or None."""

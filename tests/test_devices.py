@@ -391,14 +391,14 @@ def test_moving_a_pose_keeps_its_ankles_and_bones(synth, take08):
 
 def test_the_tracked_head_point_reaches_its_device(take08, monkeypatch):
     """The tracked dancer's head point reaches its device: his body moves most
-    of the way there (``runtime.HEAD_REACH``), his legs keeping his ankles;
+    of the way there (``tracked_pose.HEAD_REACH``), his legs keeping his ankles;
     the rigid spine alone (``HEAD_REACH = 0``) left it more than twice as far."""
-    from dancing_points_addon import runtime
+    from dancing_points_addon import tracked_pose
 
-    take, shipped = take08[0], runtime.HEAD_REACH
+    take, shipped = take08[0], tracked_pose.HEAD_REACH
     off = {}
     for reach in (shipped, 0.0):
-        monkeypatch.setattr(runtime, "HEAD_REACH", reach)
+        monkeypatch.setattr(tracked_pose, "HEAD_REACH", reach)
         duet = Synthesizer().synthesize(take)
         tk = resample_take(apply_calibration(take, duet.calibration), F.FPS)
         n = min(len(tk.positions), len(duet.leader_positions))
