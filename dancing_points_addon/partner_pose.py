@@ -12,6 +12,7 @@ import numpy as np
 
 from .follower import PELVIS, HipOptions, HoldOptions
 from .foot_lock import KinematicContacts
+from .representation import to_world
 from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, WRISTS
 
 
@@ -118,6 +119,21 @@ class HandHold:
         self._goal = [None, None]
         self._lead = [None, None]
         self._soft = [None, None]
+
+    def wrist_targets(self, leader_pos, follower_pos, l_tr, f_tr, l_roots, f_roots, arm_length):
+        """Her wrists' targets (3, 3) for :class:`~.ik.EndEffectorIK` (the
+        head's NaN: untouched), or None when neither hand is in a hold: the
+        mapping's predicted wrists of both dancers at the next frame (``l_tr``,
+        ``f_tr`` local to ``l_roots``, ``f_roots``) tell which of his hands each
+        of hers holds (:meth:`targets`)."""
+        lw = to_world(l_tr[0, 1:], l_roots[0])
+        fw = to_world(f_tr[0, 1:], f_roots[0])
+        pred = np.linalg.norm(lw[:, None] - fw[None], axis=-1)
+        tg = self.targets(leader_pos, follower_pos, pred, arm_length)
+        if tg[0] is None and tg[1] is None:
+            return None
+        nan = np.full(3, np.nan)
+        return np.array([nan, nan if tg[0] is None else tg[0], nan if tg[1] is None else tg[1]])
 
     def targets(self, leader_pos, follower_pos, pred_dist, arm_length):
         """Per follower hand a target (3,) or None. ``pred_dist (2, 2)``: the

@@ -30,6 +30,7 @@ from .dancer_state import DancerState, advance_together
 from .device_follow import DeviceFollow, hand_flex
 from .duet import Duet, DuetFrame
 from .input_cleaning import InputCleaner
+from .keys import KEY_INDEX, KeySource
 from .follower import OUT_SMOOTH, FollowerOptions, Placement, Separation
 from .partner_pose import HandHold, HipTwist, PartnerPose, hip_heading_from_probs
 from .synthesis_options import SynthesisOptions
@@ -82,34 +83,6 @@ RECENTRE_POSE = {"leader": 0.05, "follower": True}
 # Frames :meth:`Synthesizer.synthesize` reads ahead of the frame loop (between
 # lost devices) to run the networks on the input once for all of them.
 READ_AHEAD = 256
-# The mapping's index of frame t − 1 + k for the trackers' keys k >= 2 (index 0 is
-# frame t + 1): where a key source reads a predicted trajectory.
-KEY_INDEX = F.TRACK_KEYS[1:] - 2
-
-
-class KeySource:
-    """Where the two trackers' keys (the future trajectories they follow) come
-    from: the hook for studying the method (the evaluation's ablations). This
-    default takes them from the mapping's prediction
-    (:meth:`Synthesizer.leader_keys`, :meth:`Synthesizer.follower_keys`); a
-    subclass may return others, and :meth:`observe` sees every finished frame.
-    Each method gets the synthesizer (``synth``) whose frame it serves."""
-
-    def reset(self, synth) -> None:
-        """A fresh take begins (the synthesizer's own state is reset)."""
-
-    def leader(self, synth, root, cur_local, l_roots, l_tr):
-        """The tracked dancer's keys: (roots (K, 4), tracked points (K, 3, 3))."""
-        return synth.leader_keys(root, cur_local, l_roots, l_tr)
-
-    def follower(self, synth, f_roots, f_tr, l_roots, l_tr):
-        """The partner's keys: (roots (K, 4), tracked points (K, 3, 3))."""
-        return synth.follower_keys(f_roots, f_tr, l_roots, l_tr)
-
-    def observe(self, synth, tracked: DuetFrame, partner: DuetFrame) -> None:
-        """The frame just made (tracked dancer, partner), in the take's scale."""
-
-
 class Synthesizer:
     """Holds the ONNX sessions (:data:`~.nets.MODEL_FILES`) and the rollout state.
 
@@ -465,7 +438,8 @@ class Synthesizer:
             self._hip_twist.step(*rigid[1], hip_heading_from_probs(outs["hip"][0], root))
         lp, lr = self._recover(self._tracked, *rigid[0], lc, tracked_s)
         fp, fr = self._recover(self._partner, *rigid[1], fc,
-                               self._hold_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots))
+                               None if self._hold is None else
+                               self._hold.wrist_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots, self._fol_arms))
         if self._arm_limit is not None:  # her arms no faster than a real dancer's
             fp, fr = self._arm_limit.step(fp, fr)
         if self._out_smooth is not None:
@@ -493,20 +467,6 @@ class Synthesizer:
         skeleton pose) through its stage (:class:`~.tracked_pose.TrackedPose`,
         :class:`~.partner_pose.PartnerPose`): feet, floor, IK."""
         return stage(pos, rot, contacts, targets, self._contact_p)
-
-    def _hold_targets(self, leader_pos, follower_pos, l_tr, f_tr, l_roots, f_roots):
-        """The follower's wrist targets of a hand hold (head: NaN, untouched) or None."""
-        if self._hold is None:
-            return None
-        # the mapping's predicted wrists of both dancers at the next frame, world
-        lw = to_world(l_tr[0, 1:], l_roots[0])
-        fw = to_world(f_tr[0, 1:], f_roots[0])
-        pred = np.linalg.norm(lw[:, None] - fw[None], axis=-1)
-        tg = self._hold.targets(leader_pos, follower_pos, pred, self._fol_arms)
-        if tg[0] is None and tg[1] is None:
-            return None
-        nan = np.full(3, np.nan)
-        return np.array([nan, nan if tg[0] is None else tg[0], nan if tg[1] is None else tg[1]])
 
     def leader_keys(self, root, cur_local, l_roots, l_tr):
         """Leader's key inputs: the current input frame, then the mapping's prediction."""

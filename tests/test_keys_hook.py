@@ -1,4 +1,4 @@
-"""The runtime's key hook (:class:`runtime.KeySource`): the default is the
+"""The runtime's key hook (:class:`keys.KeySource`): the default is the
 mapping's keys, bit for bit; a source sees every frame and every reset; the
 evaluation's ablations run through it and change what they ablate."""
 from __future__ import annotations
@@ -10,7 +10,8 @@ from conftest import ROOT
 from dancing_points_addon.formats.take import Take
 from dancing_points_addon.formats.take_read import read_take
 from dancing_points_addon.nets import load_nets
-from dancing_points_addon.runtime import KeySource, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.keys import KeySource
 from dancing_points_addon.synthesis_options import SynthesisOptions
 from training.evaluate import LeaderTrajKeys, PastInputKeys
 

@@ -26,7 +26,8 @@ from dancing_points_addon.formats.asf_amc import load_amc
 from training.dataset import FOLLOWER, LEADER, SALSA_TAKES, split_range
 from dancing_points_addon.representation import device_rotation, root_from_head, to_local, to_world
 from dancing_points_addon.nets import OnnxNet, load_nets
-from dancing_points_addon.runtime import KEY_INDEX, KeySource, Synthesizer
+from dancing_points_addon.runtime import Synthesizer
+from dancing_points_addon.keys import KEY_INDEX, KeySource
 from dancing_points_addon.synthesis_options import SynthesisOptions
 from dancing_points_addon.skeleton import HEAD_BONE, TRACKED, WRISTS, bone_lengths_from_positions
 from dancing_points_addon.formats.take import take_from_motion, write_take

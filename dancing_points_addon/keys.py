@@ -1,0 +1,33 @@
+"""Where the two trackers' keys come from (:class:`KeySource`): the hook for
+studying the method, which the evaluation's ablations take."""
+from __future__ import annotations
+
+from . import features as F
+from .duet import DuetFrame
+
+# The mapping's index of frame t − 1 + k for the trackers' keys k >= 2 (index 0 is
+# frame t + 1): where a key source reads a predicted trajectory.
+KEY_INDEX = F.TRACK_KEYS[1:] - 2
+
+
+class KeySource:
+    """Where the two trackers' keys (the future trajectories they follow) come
+    from: the hook for studying the method (the evaluation's ablations). This
+    default takes them from the mapping's prediction
+    (:meth:`~.runtime.Synthesizer.leader_keys`, :meth:`~.runtime.Synthesizer.follower_keys`); a
+    subclass may return others, and :meth:`observe` sees every finished frame.
+    Each method gets the synthesizer (``synth``) whose frame it serves."""
+
+    def reset(self, synth) -> None:
+        """A fresh take begins (the synthesizer's own state is reset)."""
+
+    def leader(self, synth, root, cur_local, l_roots, l_tr):
+        """The tracked dancer's keys: (roots (K, 4), tracked points (K, 3, 3))."""
+        return synth.leader_keys(root, cur_local, l_roots, l_tr)
+
+    def follower(self, synth, f_roots, f_tr, l_roots, l_tr):
+        """The partner's keys: (roots (K, 4), tracked points (K, 3, 3))."""
+        return synth.follower_keys(f_roots, f_tr, l_roots, l_tr)
+
+    def observe(self, synth, tracked: DuetFrame, partner: DuetFrame) -> None:
+        """The frame just made (tracked dancer, partner), in the take's scale."""
