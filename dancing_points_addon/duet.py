@@ -74,6 +74,42 @@ class Duet:
         return out
 
 
+class DuetFrames:
+    """The frames of a duet as they are made, one slot per dancer (``0`` the
+    tracked dancer, ``1`` the partner), in arrays allocated once for ``T``
+    frames; :meth:`duet` makes the :class:`Duet` of them in dance roles.
+    ``predictions``, ``planted``: keep those too (see :class:`Duet`)."""
+
+    def __init__(self, T: int, predictions: bool = False, planted: bool = False, future: int = F.FUTURE):
+        self.pos = np.empty((2, T, 31, 3))
+        self.rot = np.empty((2, T, 31, 3, 3))
+        self.con = np.empty((2, T, 4))
+        self.predictions = np.empty((T, 2, future, 3, 3), dtype=np.float32) if predictions else None
+        self.planted = np.zeros((T, 2, 4), dtype=bool) if planted else None
+
+    def put(self, t: int, tracked: DuetFrame, partner: DuetFrame, prediction=None, planted=None) -> None:
+        for w, f in enumerate((tracked, partner)):
+            self.pos[w, t], self.rot[w, t], self.con[w, t] = f.positions, f.rotations, f.contacts
+        if self.predictions is not None:
+            self.predictions[t] = prediction
+        if self.planted is not None:
+            self.planted[t] = planted
+
+    def duet(self, time, tracked_role: str, floor_y: float = 0.0, **kw) -> Duet:
+        """The :class:`Duet` at ``time``, back on the take's floor (``floor_y``),
+        the slots put in dance roles (``tracked_role``: the tracked dancer's);
+        ``kw``: :class:`Duet`'s other fields."""
+        if floor_y:
+            self.pos[..., 1] += floor_y
+            if self.predictions is not None:
+                self.predictions[..., 1] += np.float32(floor_y)
+        slots = [(self.pos[w], self.rot[w], self.con[w]) for w in (0, 1)]
+        if tracked_role == "follower":
+            slots = slots[::-1]
+        return Duet(time, *slots[0], *slots[1], predictions=self.predictions, planted=self.planted,
+                    tracked_role=tracked_role, **kw)
+
+
 def save_npz(duet: Duet, path) -> None:
     """Write a duet (SPEC §4) atomically: nothing is left at ``path`` on failure
     (a full disk, Ctrl-C: the temporary file is removed, the zip writer closed

@@ -167,6 +167,23 @@ class StepOptions:
 
 # The partner's foot lock: the tracked dancer's (``FootLockOptions()``) with
 # looser switches, longer blends and catch-up steps that lift the whole foot.
+def check_partner_networks(options, nets: dict, foot_lock: bool, floor_levels) -> None:
+    """A ``ValueError`` naming the network that her ``options`` (a
+    :class:`FollowerOptions`, or None: no partner model) need and ``nets`` lack
+    (``floor_levels``: the contact network's, None when it has none)."""
+    if options is None:
+        return
+    if foot_lock and floor_levels is None:
+        raise ValueError("the follower's foot lock needs the contact network (contacts.onnx "
+                         "with floor_levels in its metadata)")
+    if options.pose.anchor > 0.0 and nets.get("anchor") is None:
+        raise ValueError("PoseOptions.anchor needs the pose anchor network (pose_anchor.onnx)")
+    if options.hips.share > 0 and nets.get("hip") is None:
+        raise ValueError("HipOptions.share needs the hip-heading network (hip_heading.onnx)")
+    if nets.get("placement") is None:
+        raise ValueError("the follower's placement needs the placement network (placement.onnx)")
+
+
 PARTNER_FOOT_LOCK = FootLockOptions(on=0.4, off=0.3, blend_frames=10, max_drift=0.3, step_height=0.04,
                                     step_max=0.06, step_frames=9, clearance=0.05, clear_rate=0.125,
                                     land_still=True, lift_ball=True)

@@ -6,6 +6,7 @@ process loads a folder of models once per thread count.
 """
 from __future__ import annotations
 
+import json
 import os
 import threading
 
@@ -32,6 +33,25 @@ DEFAULT_COMPUTE = "float"
 MODEL_FILES = {"mapping": "mapping.onnx", "placement": "placement.onnx", "contacts": "contacts.onnx",
                "anchor": "pose_anchor.onnx", "hip": "hip_heading.onnx", "leader": "tracker_leader.onnx",
                "follower": "tracker_follower.onnx"}
+
+
+def meta_json(net, key):
+    """A network's JSON metadata entry ``key`` (None when missing or malformed)."""
+    v = (getattr(net, "meta", {}) or {}).get(key)
+    if v is None:
+        return None
+    try:
+        return json.loads(v)
+    except (TypeError, ValueError):
+        return None
+
+
+def default_pose(net) -> np.ndarray:
+    """A tracker's start-up pose, a pose feature vector (its ``default_pose`` metadata)."""
+    meta = getattr(net, "meta", {}) or {}
+    if "default_pose" not in meta:
+        raise ValueError(f"model {getattr(net, 'path', net)} has no default_pose metadata")
+    return np.asarray(json.loads(meta["default_pose"]), dtype=np.float64)
 
 
 def contact_floor_levels(meta: dict):

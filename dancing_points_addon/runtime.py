@@ -19,7 +19,6 @@ turns followed (:mod:`.device_follow`) and the duet (:mod:`.duet`).
 """
 from __future__ import annotations
 
-import json
 from typing import NamedTuple
 
 import numpy as np
@@ -28,14 +27,14 @@ from . import features as F
 from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate, check_role, height_from_head
 from .dancer_state import DancerState, advance_together
 from .device_follow import DeviceFollow, hand_flex
-from .duet import Duet, DuetFrame
+from .duet import Duet, DuetFrame, DuetFrames
 from .input_cleaning import InputCleaner
 from .keys import KEY_INDEX, KeySource
-from .follower import OUT_SMOOTH, FollowerOptions, Placement, Separation
+from .follower import OUT_SMOOTH, FollowerOptions, Placement, Separation, check_partner_networks
 from .partner_pose import HandHold, HipTwist, PartnerPose, hip_heading_from_probs
 from .synthesis_options import SynthesisOptions
 from .tracked_pose import TrackedPose
-from .nets import contact_floor_levels, load_nets
+from .nets import contact_floor_levels, default_pose, load_nets, meta_json
 from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose)
 from .representation import (hip_frame, to_local, to_world)
 from .rotations import quat_to_matrix
@@ -49,17 +48,6 @@ CALIBRATION_FRAMES = 30  # live, without a calibration: the height is estimated 
 # missed steps on bodies it never saw (models/README.md).
 TRACKED_LOCK_FLOOR = 0.01
 DEFAULT_FLOOR_LEVELS = (0.07, 0.04, 0.07, 0.04)  # ankle, ball (m): without the contact network's levels
-
-
-def _meta_json(net, key):
-    """A network's JSON metadata entry ``key`` (None when missing or malformed)."""
-    v = (getattr(net, "meta", {}) or {}).get(key)
-    if v is None:
-        return None
-    try:
-        return json.loads(v)
-    except (TypeError, ValueError):
-        return None
 
 
 class _Read(NamedTuple):
@@ -128,9 +116,9 @@ class Synthesizer:
         self.nets = nets
         self.role = role
         follower = self.follower_options
-        cal = _meta_json(nets["mapping"], "calibration") or {}
+        cal = meta_json(nets["mapping"], "calibration") or {}
         self.train_height = float(cal.get("height_m", TRAIN_HEIGHT))  # the tracked slot's dancer
-        self.default_pose = {r: self._default_pose(nets[r]) for r in ("leader", "follower")}
+        self.default_pose = {r: default_pose(nets[r]) for r in ("leader", "follower")}
         # Each dancer's rest skeleton, from its (FK-consistent) default pose.
         self.bone_vectors = {r: bone_vectors_from_pose(F.pose_positions(p), F.pose_rotations(p))
                              for r, p in self.default_pose.items()}
@@ -139,22 +127,11 @@ class Synthesizer:
         # each dancer's floor level per foot point (training scale), from the contact network
         contacts = nets.get("contacts")
         self.floor_levels = None if contacts is None else contact_floor_levels(getattr(contacts, "meta", {}) or {})
-        # her steps timed by the contact network
         fo = follower
-        self._net_steps = bool(self.foot_lock and fo is not None)
-        if self._net_steps and self.floor_levels is None:
-            raise ValueError("the follower's foot lock needs the contact network (contacts.onnx "
-                             "with floor_levels in its metadata)")
-        # her lower body pulled towards the pose anchor's (``PoseOptions.anchor``)
-        self._anchor = float(fo.pose.anchor) if fo is not None else 0.0
-        if self._anchor > 0.0 and nets.get("anchor") is None:
-            raise ValueError("PoseOptions.anchor needs the pose anchor network (pose_anchor.onnx)")
-        if fo is not None and fo.hips.share > 0 and nets.get("hip") is None:
-            raise ValueError("HipOptions.share needs the hip-heading network (hip_heading.onnx)")
-        # her roots (where she stands and faces) from the placement network
-        self._placement_net = fo is not None
-        if self._placement_net and nets.get("placement") is None:
-            raise ValueError("the follower's placement needs the placement network (placement.onnx)")
+        check_partner_networks(fo, nets, self.foot_lock, self.floor_levels)
+        self._net_steps = bool(self.foot_lock and fo is not None)  # her steps timed by the contact network
+        self._anchor = float(fo.pose.anchor) if fo is not None else 0.0  # her legs pulled to the pose anchor's
+        self._placement_net = fo is not None  # her roots from the placement network
         # the follower's arm lengths (shoulder to wrist), for hand holds
         levels = self.floor_levels or {r: DEFAULT_FLOOR_LEVELS for r in ("leader", "follower")}
         self._floor_guards = (FloorGuard(levels["leader"]), FloorGuard(levels["follower"]))
@@ -178,13 +155,6 @@ class Synthesizer:
             raise ValueError(f"this synthesizer was given the networks of a {self.role}'s take; "
                              f"a {role}'s take needs its own")
         self._build(load_nets(self.options.models, self.options.threads, role), role)
-
-    @staticmethod
-    def _default_pose(net):
-        meta = getattr(net, "meta", {}) or {}
-        if "default_pose" not in meta:
-            raise ValueError(f"model {getattr(net, 'path', net)} has no default_pose metadata")
-        return np.asarray(json.loads(meta["default_pose"]), dtype=np.float64)
 
     # -- state -----------------------------------------------------------------
     def reset(self):
@@ -504,13 +474,8 @@ class Synthesizer:
         tk = resample_take(apply_calibration(take, calib), F.FPS)
         self.set_calibration(calib)
         T = tk.n_frames
-        out = {k: np.empty((T, 31, 3)) for k in ("lp", "fp")}
-        out.update({k: np.empty((T, 31, 3, 3)) for k in ("lr", "fr")})
-        out.update({k: np.empty((T, 4)) for k in ("lc", "fc")})
         valid = tk.valid
-        record = self.record_predictions
-        preds = np.empty((T, 2, F.FUTURE, 3, 3), dtype=np.float32) if record else None
-        planted = np.zeros((T, 2, 4), dtype=bool) if self._lockers is not None else None
+        frames = DuetFrames(T, predictions=self.record_predictions, planted=self._lockers is not None)
         t = 0
         while t < T:
             # the frames up to the next lost device read ahead, the input's networks run on them at once
@@ -521,23 +486,10 @@ class Synthesizer:
             outs = self._input_nets(np.concatenate([r.x for r in reads]))
             for i, read in enumerate(reads):
                 a, b = self._advance(read, {k: v[i:i + 1] for k, v in outs.items()})
-                if record:
-                    preds[t] = self.last_prediction
-                if planted is not None:
-                    planted[t] = self.planted()
-                out["lp"][t], out["lr"][t], out["lc"][t] = a.positions, a.rotations, a.contacts
-                out["fp"][t], out["fr"][t], out["fc"][t] = b.positions, b.rotations, b.contacts
+                frames.put(t, a, b, self.last_prediction, self.planted())
                 if progress is not None and (t % 30 == 0 or t == T - 1):
                     if progress(t + 1, T) is False:
                         raise KeyboardInterrupt("cancelled")
                 t += 1
-        if calib.floor_y:  # back onto the take's floor
-            for k in ("lp", "fp"):
-                out[k][..., 1] += calib.floor_y
-            if preds is not None:
-                preds[..., 1] += np.float32(calib.floor_y)
-        slots = [(out["lp"], out["lr"], out["lc"]), (out["fp"], out["fr"], out["fc"])]
-        if self.role == "follower":  # the tracked slot is the follower: back into dance roles
-            slots = slots[::-1]
-        return Duet(tk.time, *slots[0], *slots[1], bone_vectors=self.output_bone_vectors(), predictions=preds,
-                    planted=planted, calibration=calib, tracked_role=self.role)
+        return frames.duet(tk.time, self.role, calib.floor_y, bone_vectors=self.output_bone_vectors(),
+                           calibration=calib)
