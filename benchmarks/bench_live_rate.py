@@ -7,7 +7,15 @@ the take's rows grow it by about 185 bytes a sample) and,
 with ``--check``, the largest difference between the live duet and
 ``synthesize`` of the kept take.
 
+With ``--rounds N`` each load runs the rates N times, in turn forwards and
+backwards (72, 250, 500, 1,000, then 1,000 … 72), so that every rate sees the
+machine as the others do (a shared machine's tail latency drifts by half
+within minutes); it then prints, per rate, the median over the rounds of its
+99th percentile and that median's ratio to the first rate's, beside each
+round's own ratios.
+
     .venv/bin/python benchmarks/bench_live_rate.py [--rates 72,250,500,1000] [--seconds 60] [--load idle,busy]
+        [--rounds 1] [--check]
 """
 from __future__ import annotations
 
@@ -105,20 +113,32 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--load", default="idle,busy", help="idle, busy (one core kept busy by another process), or both")
     ap.add_argument("--check", action="store_true", help="also synthesize each kept take and compare the duets")
+    ap.add_argument("--rounds", type=int, default=1, help="runs of every rate, in turn forwards and backwards")
     args = ap.parse_args()
     print(f"{os.cpu_count()} cores; load average before: {os.getloadavg()[0]:.2f}", flush=True)
+    rates = [float(r) for r in args.rates.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
         for load in args.load.split(","):
-            for rate in (float(r) for r in args.rates.split(",")):
-                r = run(rate, args.seconds, load == "busy", args.check, Path(tmp))
-                extra = f", live duet vs synthesize {r['duet_vs_synthesize']:g}" if "duet_vs_synthesize" in r else ""
-                print(f"{r['rate']:6g} Hz {r['load']}: latency after the first seconds median {r['p50_ms']:.1f} ms, "
-                      f"p99 {r['p99_ms']:.1f} ms; lost {r['lost']}; {r['rows']} rows in {r['seconds']:.1f} s; status "
-                      f"input rate {r['status_hz']} Hz; memory while recording {r['rss_mb'][0]:.0f} MB at 5 s, "
-                      f"{r['rss_mb'][1]:.0f} MB at the end (the take's rows: "
-                      f"{r['rows'] * 185 / 2**20:.0f} MB)"
-                      f"{extra}; load average {os.getloadavg()[0]:.2f}", flush=True)
-
+            p99 = {rate: [] for rate in rates}
+            for rnd in range(max(1, args.rounds)):
+                for rate in (rates if rnd % 2 == 0 else rates[::-1]):
+                    r = run(rate, args.seconds, load == "busy", args.check, Path(tmp))
+                    p99[rate].append(r["p99_ms"])
+                    d = r.get("duet_vs_synthesize")
+                    extra = "" if d is None else f", live duet vs synthesize {d:g}"
+                    print(f"{r['rate']:6g} Hz {r['load']}: latency after the first seconds median {r['p50_ms']:.1f} "
+                          f"ms, p99 {r['p99_ms']:.1f} ms; lost {r['lost']}; {r['rows']} rows in {r['seconds']:.1f} s; "
+                          f"status input rate {r['status_hz']} Hz; memory while recording {r['rss_mb'][0]:.0f} MB at "
+                          f"5 s, {r['rss_mb'][1]:.0f} MB at the end (the take's rows: "
+                          f"{r['rows'] * 185 / 2**20:.0f} MB)"
+                          f"{extra}; load average {os.getloadavg()[0]:.2f}", flush=True)
+            if args.rounds > 1:
+                base = np.array(p99[rates[0]])
+                for rate in rates:
+                    v = np.array(p99[rate])
+                    print(f"{rate:6g} Hz {load}: p99 over {len(v)} rounds {', '.join(f'{x:.1f}' for x in v)} ms, "
+                          f"median {np.median(v):.1f} ms, {np.median(v) / np.median(base):.2f} x the {rates[0]:g} Hz "
+                          f"median (per round: {', '.join(f'{x:.2f}' for x in v / base)})", flush=True)
 
 if __name__ == "__main__":
     main()
