@@ -272,7 +272,7 @@ def test_hand_ik_puts_head_and_wrists_on_the_input(take10):
     assert err[score].mean() < 0.01
 
 
-def test_foot_locking_halves_skating(synth):
+def test_foot_locking_halves_skating(test_duets):
     """SPEC §6 skating of the leader over the 13 test takes, frame-weighted like
     the evaluation (which also writes and reads each take as a CSV file, so its
     figures differ slightly): with locking at most half of what it is
@@ -283,9 +283,7 @@ def test_foot_locking_halves_skating(synth):
 
     free_synth = Synthesizer(SynthesisOptions(foot_lock=False))
     sums = {"locked": [], "unlocked": [], "ground truth": []}
-    for no in SALSA_TAKES:
-        take, true_l, _, _, _ = test_take(no)
-        locked = synth.synthesize(take)
+    for no, (take, locked, true_l, _) in zip(SALSA_TAKES, test_duets):
         free = free_synth.synthesize(take)
         m = np.arange(free.n_frames) >= F.FPS
         per = [foot_skating(p, m) for p in (locked.leader_positions, free.leader_positions, true_l[:free.n_frames])]
