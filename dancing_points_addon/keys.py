@@ -14,20 +14,20 @@ class KeySource:
     """Where the two trackers' keys (the future trajectories they follow) come
     from: the hook for studying the method (the evaluation's ablations). This
     default takes them from the mapping's prediction
-    (:meth:`~.runtime.Synthesizer.leader_keys`, :meth:`~.runtime.Synthesizer.follower_keys`); a
+    (:meth:`~.runtime.Synthesizer.tracked_keys`, :meth:`~.runtime.Synthesizer.partner_keys`); a
     subclass may return others, and :meth:`observe` sees every finished frame.
     Each method gets the synthesizer (``synth``) whose frame it serves."""
 
     def reset(self, synth) -> None:
         """A fresh take begins (the synthesizer's own state is reset)."""
 
-    def leader(self, synth, root, cur_local, l_roots, l_tr):
+    def tracked(self, synth, root, cur_local, t_roots, t_tr):
         """The tracked dancer's keys: (roots (K, 4), tracked points (K, 3, 3))."""
-        return synth.leader_keys(root, cur_local, l_roots, l_tr)
+        return synth.tracked_keys(root, cur_local, t_roots, t_tr)
 
-    def follower(self, synth, f_roots, f_tr, l_roots, l_tr):
+    def partner(self, synth, p_roots, p_tr, t_roots, t_tr):
         """The partner's keys: (roots (K, 4), tracked points (K, 3, 3))."""
-        return synth.follower_keys(f_roots, f_tr, l_roots, l_tr)
+        return synth.partner_keys(p_roots, p_tr, t_roots, t_tr)
 
     def observe(self, synth, tracked: DuetFrame, partner: DuetFrame) -> None:
         """The frame just made (tracked dancer, partner), in the take's scale."""

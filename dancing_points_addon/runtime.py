@@ -118,12 +118,12 @@ class Synthesizer:
         follower = self.follower_options
         cal = meta_json(nets["mapping"], "calibration") or {}
         self.train_height = float(cal.get("height_m", TRAIN_HEIGHT))  # the tracked slot's dancer
-        self.default_pose = {r: default_pose(nets[r]) for r in ("leader", "follower")}
-        # Each dancer's rest skeleton, from its (FK-consistent) default pose.
+        self.default_pose = {"tracked": default_pose(nets["leader"]), "partner": default_pose(nets["follower"])}
+        # Each slot's rest skeleton (the tracked dancer's, the partner's), from its (FK-consistent) default pose.
         self.bone_vectors = {r: bone_vectors_from_pose(F.pose_positions(p), F.pose_rotations(p))
                              for r, p in self.default_pose.items()}
-        self.cleaner = InputCleaner(F.pose_positions(self.default_pose["leader"])[TRACKED])
-        self._recovery = (PoseRecovery(self.bone_vectors["leader"]), PoseRecovery(self.bone_vectors["follower"]))
+        self.cleaner = InputCleaner(F.pose_positions(self.default_pose["tracked"])[TRACKED])
+        self._recovery = (PoseRecovery(self.bone_vectors["tracked"]), PoseRecovery(self.bone_vectors["partner"]))
         # each dancer's floor level per foot point (training scale), from the contact network
         contacts = nets.get("contacts")
         self.floor_levels = None if contacts is None else contact_floor_levels(getattr(contacts, "meta", {}) or {})
@@ -135,8 +135,8 @@ class Synthesizer:
         # the follower's arm lengths (shoulder to wrist), for hand holds
         levels = self.floor_levels or {r: DEFAULT_FLOOR_LEVELS for r in ("leader", "follower")}
         self._floor_guards = (FloorGuard(levels["leader"]), FloorGuard(levels["follower"]))
-        bl = np.linalg.norm(self.bone_vectors["follower"], axis=-1)
-        self._fol_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
+        bl = np.linalg.norm(self.bone_vectors["partner"], axis=-1)
+        self._partner_arms = np.array([bl[JOINT_INDEX[s + "humerus"]] + bl[JOINT_INDEX[s + "radius"]]
                                    + bl[JOINT_INDEX[s + "wrist"]] for s in "lr"])
         self.reset()
 
@@ -162,11 +162,11 @@ class Synthesizer:
         self._reads = 0  # frames read (:meth:`_read`), ahead of :attr:`t` within a block of :meth:`synthesize`
         self.hist_roots = np.zeros((F.PAST, 4))
         self.hist_tracked = np.zeros((F.PAST, 3, 3))
-        self.leader = DancerState(self.nets["leader"], self.default_pose["leader"])
-        self.follower = DancerState(self.nets["follower"], self.default_pose["follower"])
-        self.prev_follower = None  # (root, tracked_local) predicted for frame t
+        self.tracked = DancerState(self.nets["leader"], self.default_pose["tracked"])
+        self.partner = DancerState(self.nets["follower"], self.default_pose["partner"])
+        self.prev_partner = None  # (root, tracked_local) predicted for frame t
         self.cleaner.reset()
-        self.prev_leader_pred = None  # the mapping's prediction of the next frame (root, tracked local)
+        self.prev_tracked_pred = None  # the mapping's prediction of the next frame (root, tracked local)
         self._head_heights = []
         self._calibration = None
         devices = self.calibration.devices if self.calibration is not None else "joints"
@@ -174,17 +174,17 @@ class Synthesizer:
         # which devices' orientations the tracked dancer follows (those that carry one)
         self._followed = self.calibration.followed if self.calibration is not None else (True, True, True)
         if self.options.follow_devices and any(self._followed):
-            self._follow = DeviceFollow(self.bone_vectors["leader"], "hand" if devices == "openxr" else "wrist",
-                                        hand_flex=hand_flex(F.pose_rotations(self.default_pose["leader"])))
+            self._follow = DeviceFollow(self.bone_vectors["tracked"], "hand" if devices == "openxr" else "wrist",
+                                        hand_flex=hand_flex(F.pose_rotations(self.default_pose["tracked"])))
         self._lockers = None
         self._effector = None
         fo = self.follower_options
         self._placement = Placement(fo.placement) if fo is not None else None
         self._separation = Separation(fo.placement.min_distance) if fo is not None else None
         self._hold = HandHold(fo.holds) if fo is not None and fo.holds.enabled else None
-        self._fol_target = None  # (offset from the leader, world root) this frame
+        self._partner_target = None  # (offset from the leader, world root) this frame
         self._contact_p = None  # the contact network's probabilities this frame (leader 4, follower 4)
-        self._fol_effector = None
+        self._partner_effector = None
         if self.foot_lock or self.hand_ik:
             from . import ik
             if self.foot_lock:
@@ -199,7 +199,7 @@ class Synthesizer:
                 self._effector = ik.EndEffectorIK(**self.ik_options)
         if self._hold is not None:
             from . import ik
-            self._fol_effector = ik.EndEffectorIK(**self.ik_options)
+            self._partner_effector = ik.EndEffectorIK(**self.ik_options)
         self._arm_limit = None
         if fo is not None and fo.pose.arm_turn > 0:
             from . import ik
@@ -209,9 +209,9 @@ class Synthesizer:
         if fo is not None:
             keep = OUT_SMOOTH[self.partner_role] if fo.pose.out_smooth is None else fo.pose.out_smooth
             if keep:
-                self._out_smooth = OutputSmoothing(keep, self.bone_vectors["follower"])
+                self._out_smooth = OutputSmoothing(keep, self.bone_vectors["partner"])
         # her legs kept on the skeleton's joints where the anchor pulls them (``pose.LegJoints``)
-        self._leg_joints = LegJoints(self.bone_vectors["follower"]) if self._anchor > 0.0 else None
+        self._leg_joints = LegJoints(self.bone_vectors["partner"]) if self._anchor > 0.0 else None
         # her output's thighs: their twist within ``out_thigh_twist`` (the other leg bones' as her state's)
         out_twist = float(fo.pose.out_thigh_twist) if fo is not None else 0.0
         self._out_twist = None
@@ -219,10 +219,10 @@ class Synthesizer:
             limits = list(LEG_TWIST_DEG)
             limits[1] = out_twist  # the thigh (a chain: hip joint, thigh, shin, foot, toes)
             self._out_twist = np.radians(limits).tolist()
-            self._leg_joints = self._leg_joints or LegJoints(self.bone_vectors["follower"])
+            self._leg_joints = self._leg_joints or LegJoints(self.bone_vectors["partner"])
         lockers = self._lockers or (None, None)
-        self._tracked = TrackedPose(lockers[0], self._floor_guards[0], self._effector, self._follow)
-        self._partner = PartnerPose(lockers[1], self._floor_guards[1], self._fol_effector, self._net_steps,
+        self._tracked_pose = TrackedPose(lockers[0], self._floor_guards[0], self._effector, self._follow)
+        self._partner_pose = PartnerPose(lockers[1], self._floor_guards[1], self._partner_effector, self._net_steps,
                                     self._out_twist, self._leg_joints)
         self.keys.reset(self)
 
@@ -252,10 +252,14 @@ class Synthesizer:
             return s
         return 1.0
 
+    def role_bone_vectors(self) -> dict:
+        """Each dancer's skeleton at the networks' scale, by dance role (``leader``, ``follower``)."""
+        slot = {self.role: "tracked", self.partner_role: "partner"}
+        return {r: self.bone_vectors[slot[r]] for r in ("leader", "follower")}
+
     def output_bone_vectors(self) -> dict:
         """Each dancer's skeleton at the output's scale (what the poses are made of), by dance role."""
-        out = {r: bv / self.scale() for r, bv in self.bone_vectors.items()}
-        return out if self.role == "leader" else {"leader": out["follower"], "follower": out["leader"]}
+        return {r: bv / self.scale() for r, bv in self.role_bone_vectors().items()}
 
     # -- one frame -------------------------------------------------------------
     def step(self, positions, quats, valid=(True, True, True)):
@@ -302,7 +306,7 @@ class Synthesizer:
         lost (the cleaner fills it from the mapping's prediction), so
         :meth:`synthesize` reads the frames between losses ahead and runs the
         networks on the input (:meth:`_input_nets`) once for all of them."""
-        tracked, head_rot, root = self.cleaner.clean(positions, quats, valid, self.prev_leader_pred,
+        tracked, head_rot, root = self.cleaner.clean(positions, quats, valid, self.prev_tracked_pred,
                                                      1.0 / self.scale())
         devices = None
         if self._follow is not None:  # what the devices measure this frame, for the head and hands to follow
@@ -350,76 +354,76 @@ class Synthesizer:
         networks on it, rows of one frame): both dancers one step on."""
         root, s, tracked_s, y = read.root, read.scale, read.tracked, outs["mapping"]
         if read.devices is not None:
-            self._tracked.devices = read.devices
+            self._tracked_pose.devices = read.devices
         if self.t == 0:
-            self.leader.place(root)
+            self.tracked.place(root)
         if self._net_steps:
             p = outs["contacts"][0].astype(np.float64)
             b = self.follower_options.steps.contact_smooth
             if b > 0.0 and self._contact_p is not None:
                 p = b * self._contact_p + (1.0 - b) * p
             self._contact_p = p
-        (l_roots, l_tr), (f_roots, f_tr) = F.decode_mapping(y, root[None])
-        l_roots, l_tr, f_roots, f_tr = l_roots[0], l_tr[0], f_roots[0], f_tr[0]
-        self.prev_leader_pred = (l_roots[0], l_tr[0])
+        (t_roots, t_tr), (p_roots, p_tr) = F.decode_mapping(y, root[None])
+        t_roots, t_tr, p_roots, p_tr = t_roots[0], t_tr[0], p_roots[0], p_tr[0]
+        self.prev_tracked_pred = (t_roots[0], t_tr[0])
         if self.record_predictions:  # the mapping's output (her roots the placement network's), world, output scale
-            pred = to_world(np.stack([l_tr, f_tr]), np.stack([l_roots, f_roots]))
+            pred = to_world(np.stack([t_tr, p_tr]), np.stack([t_roots, p_roots]))
             pred = pred if self.role == "leader" else pred[::-1]  # (by dance role)
             self.last_prediction = (pred if s == 1.0 else pred * (1.0 / s)).astype(np.float32)
         placement = self._placement
         if placement is not None:
-            f_roots, f_tr = placement.smooth(f_roots, f_tr)
-            self._leader_root = root
-            self._fol_target = placement.target(root, l_roots, f_roots)
+            p_roots, p_tr = placement.smooth(p_roots, p_tr)
+            self._tracked_root = root
+            self._partner_target = placement.target(root, t_roots, p_roots)
         if self.t == 0:
-            self.follower.place(self._fol_target[1] if placement is not None else f_roots[0])
-            self.prev_follower = (f_roots[0], f_tr[0])
+            self.partner.place(self._partner_target[1] if placement is not None else p_roots[0])
+            self.prev_partner = (p_roots[0], p_tr[0])
         cur_local = to_local(tracked_s, root)
-        lk_roots, lk_tr = self.keys.leader(self, root, cur_local, l_roots, l_tr)
-        fk_roots, fk_tr = self.keys.follower(self, f_roots, f_tr, l_roots, l_tr)
-        self.prev_follower = (f_roots[0], f_tr[0])
+        tk_roots, tk_tr = self.keys.tracked(self, root, cur_local, t_roots, t_tr)
+        pk_roots, pk_tr = self.keys.partner(self, p_roots, p_tr, t_roots, t_tr)
+        self.prev_partner = (p_roots[0], p_tr[0])
         if placement is not None:
-            goal = self._fol_target[1]
-            fol_root, fol_pull = (lambda prev, prop: placement.step(prev, prop, goal)), None
+            goal = self._partner_target[1]
+            partner_root, partner_pull = (lambda prev, prop: placement.step(prev, prop, goal)), None
         else:
-            fol_root, fol_pull = None, (fk_roots[0], FOLLOWER_PULL)
-        pos, rot, (lc, fc) = advance_together(
-            (self.leader, self.follower), np.array([lk_roots, fk_roots]), np.array([lk_tr, fk_tr]),
-            (root, fol_root), (None, fol_pull), (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
+            partner_root, partner_pull = None, (pk_roots[0], FOLLOWER_PULL)
+        pos, rot, (tc, pc) = advance_together(
+            (self.tracked, self.partner), np.array([tk_roots, pk_roots]), np.array([tk_tr, pk_tr]),
+            (root, partner_root), (None, partner_pull), (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
         if self._anchor > 0.0:  # her lower body pulled towards the pose anchor's
             legs = outs["anchor"][0].astype(np.float64).reshape(-1, 3)
-            fp = pos[1]
-            fp[LOWER_BODY] += self._anchor * (to_world(legs, hip_frame(fp[None])[0]) - fp[LOWER_BODY])
+            pp = pos[1]
+            pp[LOWER_BODY] += self._anchor * (to_world(legs, hip_frame(pp[None])[0]) - pp[LOWER_BODY])
         if self._separation is not None:
             dx, dz = self._separation.push(pos[0], pos[1])
             if dx or dz:  # her body and her root state move together
                 pos[1, :, 0] += dx
                 pos[1, :, 2] += dz
-                self.follower.root = self.follower.root + np.array([dx, dz, 0.0, 0.0])
+                self.partner.root = self.partner.root + np.array([dx, dz, 0.0, 0.0])
         rigid = [self._recovery[w](pos[w], rot[w]) for w in (0, 1)]
         if self._anchor > 0.0:  # her legs' twist within the skeleton's (the anchor pulls their joints)
             self._leg_joints.twist(*rigid[1])
-        for d, (p, r), c in zip((self.leader, self.follower), rigid, (lc, fc)):
+        for d, (p, r), c in zip((self.tracked, self.partner), rigid, (tc, pc)):
             d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
-        self.leader.keep_footing()  # the tracked dancer's state back on its feet if it drifted off them
+        self.tracked.keep_footing()  # the tracked dancer's state back on its feet if it drifted off them
         if self._anchor > 0.0:  # her output's hip joints turn with her pelvis (her state's need not)
             self._leg_joints.hips(*rigid[1])
         if self._hip_twist is not None:  # her hips towards where the hip-heading network says she faces
             self._hip_twist.step(*rigid[1], hip_heading_from_probs(outs["hip"][0], root))
-        lp, lr = self._recover(self._tracked, *rigid[0], lc, tracked_s)
-        fp, fr = self._recover(self._partner, *rigid[1], fc,
-                               None if self._hold is None else
-                               self._hold.wrist_targets(lp, rigid[1][0], l_tr, f_tr, l_roots, f_roots, self._fol_arms))
+        tp, tr = self._recover(self._tracked_pose, *rigid[0], tc, tracked_s)
+        holds = None if self._hold is None else self._hold.wrist_targets(tp, rigid[1][0], t_tr, p_tr, t_roots,
+                                                                         p_roots, self._partner_arms)
+        pp, pr = self._recover(self._partner_pose, *rigid[1], pc, holds)
         if self._arm_limit is not None:  # her arms no faster than a real dancer's
-            fp, fr = self._arm_limit.step(fp, fr)
+            pp, pr = self._arm_limit.step(pp, pr)
         if self._out_smooth is not None:
-            fp, fr = self._out_smooth(fp, fr)
+            pp, pr = self._out_smooth(pp, pr)
         if self._net_steps:  # her contacts are what timed her steps
-            fc = self._contact_p[4:]
+            pc = self._contact_p[4:]
         self.t += 1
         if s != 1.0:
-            lp, fp = lp * (1.0 / s), fp * (1.0 / s)
-        a, b = DuetFrame(lp, lr, lc), DuetFrame(fp, fr, fc)
+            tp, pp = tp * (1.0 / s), pp * (1.0 / s)
+        a, b = DuetFrame(tp, tr, tc), DuetFrame(pp, pr, pc)
         self.keys.observe(self, a, b)
         return a, b
 
@@ -438,21 +442,21 @@ class Synthesizer:
         :class:`~.partner_pose.PartnerPose`): feet, floor, IK."""
         return stage(pos, rot, contacts, targets, self._contact_p)
 
-    def leader_keys(self, root, cur_local, l_roots, l_tr):
+    def tracked_keys(self, root, cur_local, t_roots, t_tr):
         """Leader's key inputs: the current input frame, then the mapping's prediction."""
-        return (np.concatenate([root[None], l_roots.take(KEY_INDEX, axis=0)]),
-                np.concatenate([cur_local[None], l_tr.take(KEY_INDEX, axis=0)]))
+        return (np.concatenate([root[None], t_roots.take(KEY_INDEX, axis=0)]),
+                np.concatenate([cur_local[None], t_tr.take(KEY_INDEX, axis=0)]))
 
-    def follower_keys(self, f_roots, f_tr, l_roots, l_tr):
+    def partner_keys(self, p_roots, p_tr, t_roots, t_tr):
         """Follower's key inputs: last step's prediction of frame t, then this step's.
         With the placement state, the key roots are the predicted trajectory's
         shape from her own root, eased towards her target (``follower.Placement``)."""
-        tracked = np.concatenate([self.prev_follower[1][None], f_tr.take(KEY_INDEX, axis=0)])
+        tracked = np.concatenate([self.prev_partner[1][None], p_tr.take(KEY_INDEX, axis=0)])
         if self._placement is not None:
-            off = self._fol_target[0]
-            return (self._placement.keys(self.follower.root.tolist(), f_roots, l_roots, self._leader_root, off,
+            off = self._partner_target[0]
+            return (self._placement.keys(self.partner.root.tolist(), p_roots, t_roots, self._tracked_root, off,
                                          KEY_INDEX), tracked)
-        return np.concatenate([self.prev_follower[0][None], f_roots.take(KEY_INDEX, axis=0)]), tracked
+        return np.concatenate([self.prev_partner[0][None], p_roots.take(KEY_INDEX, axis=0)]), tracked
 
     # -- a whole take ----------------------------------------------------------
     def calibrate(self, take) -> Calibration:

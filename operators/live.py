@@ -159,9 +159,10 @@ def _options(settings, prefs_threads=1, models=None):
 def _build_rigs(context, run, synth):
     coll = run.created.add(bpy.data.collections.new(LIVE_COLLECTION))
     context.scene.collection.children.link(coll)
+    bones = synth.role_bone_vectors()
     for role in bake.ROLES:
         label = bake.ROLE_LABEL[role]
-        bv = synth.bone_vectors[role]  # the networks' size; the object's scale makes the dancer's
+        bv = bones[role]  # the networks' size; the object's scale makes the dancer's
         arm = bake.build_armature(context, "DP Live " + label, bv, coll, run.created)
         body = bake.build_body("DP Live {:s} Body".format(label), arm, bv, bake.ROLE_COLOUR[role], coll,
                                run.created)

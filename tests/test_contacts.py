@@ -76,7 +76,7 @@ def test_pose_anchor_knows_her_legs(test_clips):
 
     x, y = anchor_samples(test_clips)
     p = load_nets()["anchor"](x)
-    prior = F.pose_positions(Synthesizer().default_pose["follower"])[None]
+    prior = F.pose_positions(Synthesizer().default_pose["partner"])[None]
     prior = to_local(prior, hip_frame(prior))[:, LOWER_BODY].reshape(1, -1)
     err = {k: 100 * np.linalg.norm((v - y).reshape(len(y), -1, 3), axis=-1).mean()
            for k, v in (("anchor", p), ("prior", prior))}

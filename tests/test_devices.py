@@ -188,9 +188,9 @@ def test_forearm_follow_keeps_the_wrist_point_in_and_out_of_reach(synth, take08)
 
     duet = synth.synthesize(take08[0])
     P0, R0 = duet.leader_positions[60].copy(), duet.leader_rotations[60].copy()
-    follow = DeviceFollow(synth.bone_vectors["leader"])
+    follow = DeviceFollow(synth.bone_vectors["tracked"])
     J = JOINT_INDEX
-    e = synth.bone_vectors["leader"][J["lwrist"]]
+    e = synth.bone_vectors["tracked"][J["lwrist"]]
     e = e / np.linalg.norm(e)
     sh, el, re, wr = (P0[J[b]] for b in ("lclavicle", "lhumerus", "lradius", "lwrist"))
     out = (wr - sh) / np.linalg.norm(wr - sh)
@@ -226,7 +226,7 @@ def test_grip_turns_the_forearm_by_the_dancers_hand_bend(synth, take08):
     duet = synth.synthesize(take08[0])
     P0, R0 = duet.leader_positions[60].copy(), duet.leader_rotations[60].copy()
     J = JOINT_INDEX
-    bv = synth.bone_vectors["leader"]
+    bv = synth.bone_vectors["tracked"]
     e = bv[J["lwrist"]] / np.linalg.norm(bv[J["lwrist"]])
     # the grip of the same arm with its forearm end turned 25 degrees about the elbow-to-wrist normal
     fore = R0[J["lwrist"]] @ e
@@ -381,7 +381,7 @@ def test_moving_a_pose_keeps_its_ankles_and_bones(synth, take08):
     # the rotations agree with the positions: each leg bone's rest direction, turned, is its posed direction
     from dancing_points_addon.skeleton import PARENTS
 
-    bv = synth.bone_vectors["leader"]
+    bv = synth.bone_vectors["tracked"]
     rest_dir = bv / np.linalg.norm(bv, axis=-1, keepdims=True).clip(1e-12)
     for pose, rots in ((P0, R0), (P, R)):
         for j in legs:

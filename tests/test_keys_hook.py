@@ -41,20 +41,20 @@ def plain(nets, short_take):
 
 class Recording(KeySource):
     def __init__(self):
-        self.resets = self.leader_calls = self.follower_calls = 0
+        self.resets = self.tracked_calls = self.partner_calls = 0
         self.seen = []
 
     def reset(self, synth):
         self.resets += 1
         self.seen = []
 
-    def leader(self, synth, root, cur_local, l_roots, l_tr):
-        self.leader_calls += 1
-        return super().leader(synth, root, cur_local, l_roots, l_tr)
+    def tracked(self, synth, root, cur_local, t_roots, t_tr):
+        self.tracked_calls += 1
+        return super().tracked(synth, root, cur_local, t_roots, t_tr)
 
-    def follower(self, synth, f_roots, f_tr, l_roots, l_tr):
-        self.follower_calls += 1
-        return super().follower(synth, f_roots, f_tr, l_roots, l_tr)
+    def partner(self, synth, p_roots, p_tr, t_roots, t_tr):
+        self.partner_calls += 1
+        return super().partner(synth, p_roots, p_tr, t_roots, t_tr)
 
     def observe(self, synth, tracked, partner):
         self.seen.append((tracked.positions.copy(), partner.positions.copy()))
@@ -66,7 +66,7 @@ def test_default_source_is_the_mapping_bit_for_bit(nets, short_take, plain):
     for k in ("leader_positions", "leader_rotations", "follower_positions", "follower_rotations"):
         assert np.array_equal(getattr(duet, k), getattr(plain, k)), k
     n = duet.n_frames
-    assert rec.leader_calls == rec.follower_calls == n
+    assert rec.tracked_calls == rec.partner_calls == n
     assert len(rec.seen) == n and rec.resets >= 1
     # what it observed is what the take gets (a leader's take: tracked = leader, floor at y = 0)
     assert np.allclose(rec.seen[-1][0], duet.leader_positions[-1])

@@ -116,6 +116,19 @@ def test_the_follower_models_are_shipped_and_checked():
         nets["mapping"].meta.get("tracked_role") == "follower"
 
 
+def test_each_dancers_skeleton_whoever_is_tracked():
+    """A dancer's skeleton by dance role is the same whichever dancer the take
+    tracks (Blender's *Live* builds its two rigs from it before the first
+    frame): the synthesizer's own slots are the tracked dancer and the partner."""
+    lead, fol = Synthesizer(), Synthesizer(SynthesisOptions(role="follower"))
+    a, b = lead.role_bone_vectors(), fol.role_bone_vectors()
+    assert set(a) == set(b) == {"leader", "follower"}
+    for role in a:
+        np.testing.assert_array_equal(a[role], b[role])
+    assert not np.allclose(a["leader"], a["follower"])  # two different bodies
+    np.testing.assert_array_equal(fol.bone_vectors["tracked"], a["follower"])
+
+
 def test_five_minute_follower_take_stays_together():
     """A 5-minute continuous take of the follower (salsa take 61_01 played forth
     and back at 60 Hz, role=follower): the synthesised leader within 3 m of her

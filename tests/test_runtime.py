@@ -682,7 +682,7 @@ def test_a_long_take_keeps_his_feet_on_the_floor(synth):
     take = take_from_motion(load_amc(SALSA / "60_08.amc"))
     duet = synth.synthesize(take)
     low = duet.leader_positions[:, [3, 4, 8, 9], 1].min(1) - float(duet.calibration.floor_y)
-    pulls = synth.leader.footing_pulls
+    pulls = synth.tracked.footing_pulls
     print(f"\n60_08 whole, {duet.n_frames} frames: his lowest foot point median {np.median(low) * 100:.1f} cm, "
           f"over 15 cm on {np.mean(low > 0.15) * 100:.1f} % of frames, highest {low.max() * 100:.1f} cm; "
           f"state pulled back on {pulls} frames")

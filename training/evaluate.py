@@ -105,14 +105,14 @@ class PastInputKeys(KeySource):
         idx = [max(n - 1 - k, 0) for k in F.TRACK_KEYS]  # frames (t - 1) - k relative to the last entry
         return np.stack([hist[i][0] for i in idx]), np.stack([hist[i][1] for i in idx])
 
-    def leader(self, synth, root, cur_local, l_roots, l_tr):
+    def tracked(self, synth, root, cur_local, t_roots, t_tr):
         self._lh.append((root, cur_local))
         self._lh = self._lh[-self.HIST:]
         return self._past(self._lh[:-1] or self._lh)
 
-    def follower(self, synth, f_roots, f_tr, l_roots, l_tr):
+    def partner(self, synth, p_roots, p_tr, t_roots, t_tr):
         if not self._fh or not self.follower_past:
-            return synth.follower_keys(f_roots, f_tr, l_roots, l_tr)
+            return synth.partner_keys(p_roots, p_tr, t_roots, t_tr)
         return self._past(self._fh)
 
     def observe(self, synth, tracked, partner):
@@ -129,11 +129,11 @@ class LeaderTrajKeys(KeySource):
     def reset(self, synth):
         self._prev_lead = None
 
-    def follower(self, synth, f_roots, f_tr, l_roots, l_tr):
-        prev = self._prev_lead if self._prev_lead is not None else (l_roots[0], l_tr[0])
-        self._prev_lead = (l_roots[0], l_tr[0])
-        return (np.concatenate([prev[0][None], l_roots[KEY_INDEX]]),
-                np.concatenate([prev[1][None], l_tr[KEY_INDEX]]))
+    def partner(self, synth, p_roots, p_tr, t_roots, t_tr):
+        prev = self._prev_lead if self._prev_lead is not None else (t_roots[0], t_tr[0])
+        self._prev_lead = (t_roots[0], t_tr[0])
+        return (np.concatenate([prev[0][None], t_roots[KEY_INDEX]]),
+                np.concatenate([prev[1][None], t_tr[KEY_INDEX]]))
 
 
 class FixedPose:
@@ -142,8 +142,8 @@ class FixedPose:
 
     def __init__(self, synth: Synthesizer, follower_offset):
         self.synth = synth
-        self.lead_pose = synth.default_pose["leader"]
-        self.fol_pose = synth.default_pose["follower"]
+        self.lead_pose = synth.default_pose["tracked"]
+        self.fol_pose = synth.default_pose["partner"]
         self.offset = follower_offset
 
     def run(self, take):
@@ -380,7 +380,7 @@ def run_system(factory, segments, tmpdir, fixed=None, scenario=Scenario()):
             devices = device_rotations(take, duet.calibration)
             placement = getattr(synth, "_placement", None)
             leashed += placement.leashed if placement is not None else 0
-            poses = synth.default_pose["leader"], synth.default_pose["follower"]
+            poses = synth.default_pose["tracked"], synth.default_pose["partner"]
         if scenario.floor_shift:  # against the equally shifted truth
             pl, pf = pl.copy(), pf.copy()
             pl[..., 1] -= scenario.floor_shift
