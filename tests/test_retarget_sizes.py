@@ -1,7 +1,9 @@
-"""Rigify rigs as users make them: the sample take's duet retargeted, both
-dancers, onto Blender's human meta-rig and the rig Rigify generates from it,
-left at Blender's default size and scaled to 0.7× and 1.4× the dancer's
-height (the bundled ``rigify`` add-on enabled). Every retarget passes the
+"""Rigify rigs as users make them: the sample take's duet (its first
+:data:`SECONDS` seconds: the steps, holds and turns a rig must follow, at a
+third of the cost of the whole take) retargeted, both dancers, onto
+Blender's human meta-rig and the rig Rigify generates from it, left at
+Blender's default size and scaled to 0.7× and 1.4× the dancer's height (the
+bundled ``rigify`` add-on enabled). Every retarget passes the
 rig's own check (no refusal); every frame is evaluated by Blender and checked
 as in ``test_retarget_rigs``: hands, feet and head within 3 cm of the source's
 after normalising by height (mean), planted feet still, and the deform bones
@@ -29,6 +31,7 @@ from support.helpers import CM, SRC_POINTS, TGT_POINTS  # noqa: E402
 from support.retarget_util import check_rig, evaluate, points, reference, source_height  # noqa: E402
 
 SAMPLE = ROOT / "dancing_points_addon" / "samples" / "sample_take.csv"
+SECONDS = 4.0
 METARIG_POINTS = {"lhip": "thigh.L", "rhip": "thigh.R", "head": "spine.006", "lwrist": "hand.L", "rwrist": "hand.R",
                   "lankle": "foot.L", "rankle": "foot.R", "lball": "toe.L", "rball": "toe.R"}
 TGT_POINTS.setdefault("rigify_metarig", METARIG_POINTS)
@@ -36,11 +39,18 @@ TGT_POINTS.setdefault("rigify_def", {k: "DEF-" + v for k, v in METARIG_POINTS.it
 
 
 @pytest.fixture(scope="module")
-def scene():
+def scene(tmp_path_factory):
+    from dancing_points_addon.formats.take import Take, write_take
+    from dancing_points_addon.formats.take_read import read_take
+
     bsu.fresh_scene()
     if bsu.enable_rigify() is None:
         pytest.skip("the bundled 'rigify' add-on is not available in this bpy build")
-    assert bpy.ops.dancing_points.import_take(filepath=str(SAMPLE)) == {'FINISHED'}
+    full = read_take(SAMPLE)
+    keep = full.time - full.time[0] < SECONDS
+    csv = tmp_path_factory.mktemp("dp_rigify_sizes") / "sample_start.csv"
+    write_take(csv, Take(full.time[keep], full.positions[keep], full.quats[keep], dict(full.meta)))
+    assert bpy.ops.dancing_points.import_take(filepath=str(csv)) == {'FINISHED'}
     assert bpy.ops.dancing_points.synthesize(model_dir=MODELS) == {'FINISHED'}
     duet = next(c for c in bpy.data.collections if c.dancing_points.kind == 'DUET')
     dp = import_from_extension("operators.retarget").duet_armatures(duet)
