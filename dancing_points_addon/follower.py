@@ -282,6 +282,16 @@ class Placement:
             out.append(blend_root(_compose(e2, rel), _compose(l_roots[min(idx, len(l_roots) - 1)].tolist(), offset), w))
         return np.array(out)
 
+    def key_roots(self, root, prev_root, f_roots, l_roots, leader_root, offset, key_index):
+        """Her tracker's key roots (:meth:`keys`; ``prev_root``, the prediction
+        of her root at this frame, is :class:`PulledRoot`'s)."""
+        return self.keys(root, f_roots, l_roots, leader_root, offset, key_index)
+
+    @staticmethod
+    def goal(target, key_roots):
+        """Where :meth:`step` pulls her root: her target's world root."""
+        return target[1]
+
     def step(self, prev, proposal, target):
         """The new root: ``proposal`` (the tracker's) pulled towards ``target``,
         within the speed and turn limits from ``prev``."""
@@ -304,6 +314,38 @@ class Placement:
             a = atan2(ps, pc) + (tlim if turn > 0 else -tlim)
             c, s = cos(a), sin(a)
         return [x, z, c, s]
+
+
+class PulledRoot:
+    """Her root without the partner model (``Synthesizer(follower=None)``: the
+    evaluation's ablation), with :class:`Placement`'s interface: her keys are
+    the mapping's predicted roots as they are, and her tracker's own next root
+    is pulled the share :attr:`pull` of the way to the first of them."""
+
+    leashed = 0
+
+    def __init__(self, pull: float = 0.1):
+        self.pull = pull
+
+    @staticmethod
+    def smooth(*arrays):
+        return arrays
+
+    @staticmethod
+    def target(leader_root, l_roots, f_roots):
+        """No target: ``(None, her predicted root)``, where she starts."""
+        return None, f_roots[0]
+
+    @staticmethod
+    def key_roots(root, prev_root, f_roots, l_roots, leader_root, offset, key_index):
+        return np.concatenate([prev_root[None], f_roots.take(key_index, axis=0)])
+
+    @staticmethod
+    def goal(target, key_roots):
+        return key_roots[0].tolist()
+
+    def step(self, prev, proposal, goal):
+        return blend_root(proposal, goal, self.pull)
 
 
 class Separation:

@@ -30,7 +30,7 @@ from .device_follow import DeviceFollow, hand_flex
 from .duet import Duet, DuetFrame, DuetFrames
 from .input_cleaning import InputCleaner
 from .keys import KEY_INDEX, KeySource
-from .follower import OUT_SMOOTH, FollowerOptions, Placement, Separation, check_partner_networks
+from .follower import OUT_SMOOTH, FollowerOptions, Placement, PulledRoot, Separation, check_partner_networks
 from .partner_pose import HandHold, HipTwist, PartnerPose, hip_heading_from_probs
 from .synthesis_options import SynthesisOptions
 from .tracked_pose import TrackedPose
@@ -60,10 +60,6 @@ class _Read(NamedTuple):
     devices: tuple | None  # the devices' rotations for DeviceFollow (None: not followed)
 
 
-# Each dancer's new root: the leader's is the one his head gives (his root cannot
-# drift); without the follower's placement state (``follower=None``, the
-# ablations) hers is pulled this share of the way to the mapping's prediction.
-FOLLOWER_PULL = 0.1
 # What keeps each tracker's pose state on its root on any length of take (see
 # :func:`advance_together`), by the tracker's dance role, tracked or synthesised:
 # his head within 5 cm of his root, her pose re-centred on her root every frame.
@@ -179,7 +175,8 @@ class Synthesizer:
         self._lockers = None
         self._effector = None
         fo = self.follower_options
-        self._placement = Placement(fo.placement) if fo is not None else None
+        # her root: a placement state, or (no partner model: the ablation) pulled to the raw prediction
+        self._placement = Placement(fo.placement) if fo is not None else PulledRoot()
         self._separation = Separation(fo.placement.min_distance) if fo is not None else None
         self._hold = HandHold(fo.holds) if fo is not None and fo.holds.enabled else None
         self._partner_target = None  # (offset from the leader, world root) this frame
@@ -371,25 +368,21 @@ class Synthesizer:
             pred = pred if self.role == "leader" else pred[::-1]  # (by dance role)
             self.last_prediction = (pred if s == 1.0 else pred * (1.0 / s)).astype(np.float32)
         placement = self._placement
-        if placement is not None:
-            p_roots, p_tr = placement.smooth(p_roots, p_tr)
-            self._tracked_root = root
-            self._partner_target = placement.target(root, t_roots, p_roots)
+        p_roots, p_tr = placement.smooth(p_roots, p_tr)
+        self._tracked_root = root
+        self._partner_target = placement.target(root, t_roots, p_roots)
         if self.t == 0:
-            self.partner.place(self._partner_target[1] if placement is not None else p_roots[0])
+            self.partner.place(self._partner_target[1])
             self.prev_partner = (p_roots[0], p_tr[0])
         cur_local = to_local(tracked_s, root)
         tk_roots, tk_tr = self.keys.tracked(self, root, cur_local, t_roots, t_tr)
         pk_roots, pk_tr = self.keys.partner(self, p_roots, p_tr, t_roots, t_tr)
         self.prev_partner = (p_roots[0], p_tr[0])
-        if placement is not None:
-            goal = self._partner_target[1]
-            partner_root, partner_pull = (lambda prev, prop: placement.step(prev, prop, goal)), None
-        else:
-            partner_root, partner_pull = None, (pk_roots[0], FOLLOWER_PULL)
+        goal = placement.goal(self._partner_target, pk_roots)
         pos, rot, (tc, pc) = advance_together(
             (self.tracked, self.partner), np.array([tk_roots, pk_roots]), np.array([tk_tr, pk_tr]),
-            (root, partner_root), (None, partner_pull), (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
+            (root, lambda prev, prop: placement.step(prev, prop, goal)), (None, None),
+            (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
         if self._anchor > 0.0:  # her lower body pulled towards the pose anchor's
             legs = outs["anchor"][0].astype(np.float64).reshape(-1, 3)
             pp = pos[1]
@@ -448,15 +441,14 @@ class Synthesizer:
                 np.concatenate([cur_local[None], t_tr.take(KEY_INDEX, axis=0)]))
 
     def partner_keys(self, p_roots, p_tr, t_roots, t_tr):
-        """Follower's key inputs: last step's prediction of frame t, then this step's.
-        With the placement state, the key roots are the predicted trajectory's
-        shape from her own root, eased towards her target (``follower.Placement``)."""
+        """The partner's key inputs: last step's prediction of frame t, then this
+        step's; the key roots as her placement makes them (the predicted
+        trajectory's shape from her own root, eased towards her target:
+        ``follower.Placement``; without the partner model the prediction's own)."""
         tracked = np.concatenate([self.prev_partner[1][None], p_tr.take(KEY_INDEX, axis=0)])
-        if self._placement is not None:
-            off = self._partner_target[0]
-            return (self._placement.keys(self.partner.root.tolist(), p_roots, t_roots, self._tracked_root, off,
-                                         KEY_INDEX), tracked)
-        return np.concatenate([self.prev_partner[0][None], p_roots.take(KEY_INDEX, axis=0)]), tracked
+        roots = self._placement.key_roots(self.partner.root.tolist(), self.prev_partner[0], p_roots, t_roots,
+                                          self._tracked_root, self._partner_target[0], KEY_INDEX)
+        return roots, tracked
 
     # -- a whole take ----------------------------------------------------------
     def calibrate(self, take) -> Calibration:
