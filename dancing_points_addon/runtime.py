@@ -1,9 +1,10 @@
 """Online duet synthesis: three points in, two full-body poses out, 30 times a second.
 
 One loop serves the live preview and the offline bake: :meth:`Synthesizer.step`
-takes one 30 Hz three-point frame and returns the leader's and the follower's
-pose for that frame, using no later input; :meth:`Synthesizer.synthesize` runs
-the same loop over a whole take.
+takes one 30 Hz three-point frame (read as the calibration says) and returns
+the leader's and the follower's pose for that frame, using no later input;
+:meth:`Synthesizer.synthesize` calibrates and resamples a whole take and runs
+the same frame over it.
 
 Timing (see ``features``): the tracker state at step ``t`` holds each dancer's
 pose at ``t − 1``; its future keys ``t − 1 + k`` are the current input (key 1)
@@ -260,30 +261,15 @@ class Synthesizer:
 
     # -- one frame -------------------------------------------------------------
     def step(self, positions, quats, valid=(True, True, True)):
-        """One 30 Hz frame of the take's device poses: positions (3, 3),
-        quaternions (3, 4) (w, x, y, z), ``valid`` (3,) tracking flags, read as
-        :attr:`calibration` says (devices, floor; see :meth:`set_calibration`).
-        Returns (leader, follower) :class:`DuetFrame` in the take's frame."""
-        c = self.calibration
-        if c is None:
-            a, b = self._frame(positions, quats, valid)
-            return (b, a) if self.role == "follower" else (a, b)
-        positions, quats = c.read(positions, quats)
-        positions = np.array(positions, dtype=np.float64)
-        positions[:, 1] -= c.floor_y
-        a, b = self._frame(positions, quats, valid)
-        if c.floor_y:
-            a.positions[:, 1] += c.floor_y
-            b.positions[:, 1] += c.floor_y
-        return (b, a) if self.role == "follower" else (a, b)
-
-    def step_points(self, positions, quats, valid=(True, True, True)):
-        """One 30 Hz frame already read as :attr:`calibration` says (§2 points
-        above a floor at y = 0: :func:`~.calibration.apply_calibration` of the
-        rows, then resampled), returned in the take's frame: the frame
-        :meth:`synthesize` runs. A live loop that reads each row as it comes,
+        """One 30 Hz frame: the three points ``positions (3, 3)``, ``quats (3, 4)``
+        (w, x, y, z) and ``valid (3,)`` tracking flags, read as
+        :attr:`calibration` says (§2 points above a floor at y = 0:
+        :func:`~.calibration.apply_calibration` of the rows, then resampled).
+        Returns (leader, follower) :class:`DuetFrame` in the take's frame. The
+        one per-frame entry: a live loop that reads each row as it comes,
         resamples and calls this makes the frames :meth:`synthesize` makes of
-        the same rows (:meth:`step` resamples before it reads)."""
+        the same rows (which runs the same stages, the input's networks on
+        blocks of frames at once)."""
         a, b = self._frame(positions, quats, valid)
         c = self.calibration
         if c is not None and c.floor_y:

@@ -128,7 +128,7 @@ def test_reading_ahead_gives_the_frame_loops_bits(take10, monkeypatch, ahead):
     assert lost.sum() >= 20 and (np.diff(lost.astype(int)) == 1).sum() >= 2 and tk.n_frames == duet.n_frames > 3 * 7
     synth.set_calibration(calib)
     for t in range(tk.n_frames):
-        a, b = synth.step_points(tk.positions[t], tk.quats[t], tk.valid[t])
+        a, b = synth.step(tk.positions[t], tk.quats[t], tk.valid[t])
         assert np.array_equal(a.positions, duet.leader_positions[t]), t
         assert np.array_equal(b.rotations, duet.follower_rotations[t]), t
         assert np.array_equal(b.contacts, duet.follower_contacts[t]), t

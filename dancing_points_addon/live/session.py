@@ -39,7 +39,7 @@ its own thread (or the caller's: :meth:`LiveSession.feed`, :meth:`tick`):
 4. **frames**: resampled causally to 30 Hz (:class:`.rows.CausalResampler`:
    the frames of :func:`~..resample.resample_take`, each made once the row
    after it has come) and synthesised
-   (:meth:`~..runtime.Synthesizer.step_points`). Only the two rows around a
+   (:meth:`~..runtime.Synthesizer.step`). Only the two rows around a
    frame's time are read for it, as the calibration says (as
    :func:`~..calibration.apply_calibration` reads a take): rows that come
    faster than the frames are coalesced, so a 1,000 Hz sender costs the loop
@@ -318,7 +318,7 @@ class LiveSession(StreamCalibration):
 
     def _step(self, k, pos, quat, ok, arrival) -> None:
         t0 = self.clock()
-        a, b = self.synth.step_points(pos, quat, ok)
+        a, b = self.synth.step(pos, quat, ok)
         self.compute_s.append(self.clock() - t0)
         f = self._frames
         f["lp"].append(a.positions), f["lr"].append(a.rotations), f["lc"].append(a.contacts)
