@@ -1,7 +1,8 @@
 """One dancer's tracker state (:class:`DancerState`) and the step that
-advances the tracked dancer and the partner together
-(:func:`advance_together`), with what keeps a pose state on its root on any
-length of take (:func:`limit_drift`, :func:`recentre`)."""
+advances the tracked dancer and the partner together: their trackers
+(:func:`tracker_step`), then their new roots and poses (:func:`settle_step`),
+with what keeps a pose state on its root on any length of take
+(:func:`limit_drift`, :func:`recentre`)."""
 from __future__ import annotations
 
 from math import sqrt
@@ -9,7 +10,7 @@ from math import sqrt
 import numpy as np
 
 from . import features as F
-from .representation import (DEVICE_FROM_HEAD, blend_root, pose_to_world, root_compose, root_from_head, rot_to_local,
+from .representation import (DEVICE_FROM_HEAD, pose_to_world, root_from_head, rot_to_local,
                              to_local)
 from .skeleton import FEET, HEAD_BONE, TRACKED
 
@@ -55,15 +56,6 @@ class DancerState:
         self.footing_pulls += 1
         return True
 
-    def advance(self, key_roots, key_tracked, observed_root=None, pull=None):
-        """One tracker step; returns world positions, rotations, contacts of the new
-        frame. ``observed_root``: the new frame's root when the input shows it (the
-        leader's head), used instead of the predicted one so the root cannot drift.
-        ``pull = (root, w)``: move the predicted root the share ``w`` of the way to
-        ``root`` (a complementary filter: no drift, little jitter)."""
-        pos, rot, con = advance_together((self,), key_roots[None], key_tracked[None], (observed_root,), (pull,))
-        return pos[0], rot[0], con[0]
-
     def set_pose(self, pos_world, rot_world, contacts):
         """Replace the state's pose (world) by a post-processed one."""
         self.pose = F.pose_features(to_local(pos_world[None], self.root[None]),
@@ -98,32 +90,37 @@ def recentre(pos, rot):
     return out_p, out_r
 
 
-def advance_together(dancers, key_roots, key_tracked, observed_roots, pulls, recentre_pose=(False, False)):
-    """:meth:`DancerState.advance` of several dancers at once: their networks one
-    after the other, the feature work around them batched over the dancers (at
-    these sizes numpy's cost is per call, not per element). ``key_roots (D, K, 4)``,
-    ``key_tracked (D, K, 3, 3)``; per dancer an observed root (or None) and a pull
-    (or None). Returns world positions ``(D, 31, 3)``, rotations ``(D, 31, 3, 3)``
-    and contacts ``(D, 4)``."""
+def tracker_step(dancers, key_roots, key_tracked):
+    """The trackers' step of several dancers: their networks one after the
+    other, the feature work around them batched over the dancers (at these
+    sizes numpy's cost is per call, not per element). ``key_roots (D, K, 4)``,
+    ``key_tracked (D, K, 3, 3)``. Returns per dancer the root change its
+    tracker proposes ``(D, 4)`` and its new local pose: positions
+    ``(D, 31, 3)``, rotations ``(D, 31, 3, 3)``, contacts ``(D, 4)``. The
+    dancers' state is not touched (:func:`settle_step` does)."""
     x = F.tracking_input(np.array([d.pose for d in dancers]), np.array([d.root for d in dancers]),
                          key_roots, key_tracked)
     y = np.concatenate([d.net(x[i:i + 1]) for i, d in enumerate(dancers)], dtype=np.float64)
     rel, pos, rot, con = F.split_tracking_output(y[:, :F.KEY_OUT])
-    for d, r, root, pull in zip(dancers, rel[:, 0], observed_roots, pulls):
-        if root is None:
-            root = root_compose(d.root, r)
-        elif callable(root):  # a placement given the tracker's own next root
-            root = np.array(root(d.root.tolist(), root_compose(d.root, r).tolist()))
-        if pull is not None and pull[1] > 0:
-            root = np.array(blend_root(root.tolist(), pull[0].tolist(), pull[1]))
+    return rel[:, 0], pos[:, 0], rot[:, 0], con[:, 0]
+
+
+def settle_step(dancers, roots, pos, rot, con, recentre_pose=(False, False)):
+    """The step's end: each dancer's new ``root`` (as its caller chose it: the
+    one the input shows, or its tracker's proposal placed; :func:`root_compose`
+    of the old root and the proposed change), its local pose kept on it
+    (``recentre_pose`` per dancer: True, re-centred on its own head; a
+    distance, the head's drift limited to it; False, as it is) and made its
+    state. Returns world positions ``(D, 31, 3)``, rotations ``(D, 31, 3, 3)``
+    and contacts ``(D, 4)``."""
+    for d, root in zip(dancers, roots):
         d.root = root
-    pos, rot = pos[:, 0], rot[:, 0]
     for i, on in enumerate(recentre_pose):
         if on is True:
             pos[i:i + 1], rot[i:i + 1] = recentre(pos[i:i + 1], rot[i:i + 1])
         elif on is not False and on is not None:  # a distance: limit the drift to it
             pos[i:i + 1] = limit_drift(pos[i:i + 1], float(on))
-    con = np.minimum(np.maximum(con[:, 0], 0.0), 1.0)  # np.clip(con, 0, 1), cheaper
+    con = np.minimum(np.maximum(con, 0.0), 1.0)  # np.clip(con, 0, 1), cheaper
     for d, pose in zip(dancers, F.pose_features(pos, rot, con)):
         d.pose = pose
     return pose_to_world(pos, rot, np.array([d.root for d in dancers])) + (con,)

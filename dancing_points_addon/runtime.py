@@ -26,7 +26,7 @@ import numpy as np
 
 from . import features as F
 from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate, check_role, height_from_head
-from .dancer_state import DancerState, advance_together
+from .dancer_state import DancerState, settle_step, tracker_step
 from .device_follow import DeviceFollow, hand_flex
 from .duet import Duet, DuetFrame, DuetFrames
 from .input_cleaning import InputCleaner
@@ -37,7 +37,7 @@ from .synthesis_options import SynthesisOptions
 from .tracked_pose import TrackedPose
 from .nets import contact_floor_levels, default_pose, load_nets, meta_json
 from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose)
-from .representation import (hip_frame, to_local, to_world)
+from .representation import hip_frame, root_compose, to_local, to_world
 from .rotations import quat_to_matrix
 from .skeleton import JOINT_INDEX, LOWER_BODY, TRACKED
 
@@ -62,7 +62,7 @@ class _Read(NamedTuple):
 
 
 # What keeps each tracker's pose state on its root on any length of take (see
-# :func:`advance_together`), by the tracker's dance role, tracked or synthesised:
+# :func:`~.dancer_state.settle_step`), by the tracker's dance role, tracked or synthesised:
 # his head within 5 cm of his root, her pose re-centred on her root every frame.
 RECENTRE_POSE = {"leader": 0.05, "follower": True}
 # Frames :meth:`Synthesizer.synthesize` reads ahead of the frame loop (between
@@ -361,14 +361,18 @@ class Synthesizer:
             self.partner.place(self._partner_target[1])
             self.prev_partner = (p_roots[0], p_tr[0])
         cur_local = to_local(tracked_s, root)
-        tk_roots, tk_tr = self.keys.tracked(self, root, cur_local, t_roots, t_tr)
-        pk_roots, pk_tr = self.keys.partner(self, p_roots, p_tr, t_roots, t_tr)
+        keys = self.keys.tracked(self, root, cur_local, t_roots, t_tr)
+        tk_roots, tk_tr = keys if keys is not None else self._tracked_keys(root, cur_local, t_roots, t_tr)
+        keys = self.keys.partner(self, p_roots, p_tr, t_roots, t_tr)
+        pk_roots, pk_tr = keys if keys is not None else self._partner_keys(p_roots, p_tr, t_roots, t_tr)
         self.prev_partner = (p_roots[0], p_tr[0])
         goal = placement.goal(self._partner_target, pk_roots)
-        pos, rot, (tc, pc) = advance_together(
-            (self.tracked, self.partner), np.array([tk_roots, pk_roots]), np.array([tk_tr, pk_tr]),
-            (root, lambda prev, prop: placement.step(prev, prop, goal)), (None, None),
-            (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
+        dancers = (self.tracked, self.partner)
+        rel, pos, rot, con = tracker_step(dancers, np.array([tk_roots, pk_roots]), np.array([tk_tr, pk_tr]))
+        prev = self.partner.root  # her new root: her tracker's proposal, placed
+        partner_root = np.array(placement.step(prev.tolist(), root_compose(prev, rel[1]).tolist(), goal))
+        pos, rot, (tc, pc) = settle_step(dancers, (root, partner_root), pos, rot, con,
+                                         (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
         if self._anchor > 0.0:  # her lower body pulled towards the pose anchor's
             legs = outs["anchor"][0].astype(np.float64).reshape(-1, 3)
             pp = pos[1]
@@ -421,12 +425,12 @@ class Synthesizer:
         :class:`~.partner_pose.PartnerPose`): feet, floor, IK."""
         return stage(pos, rot, contacts, targets, self._contact_p)
 
-    def tracked_keys(self, root, cur_local, t_roots, t_tr):
+    def _tracked_keys(self, root, cur_local, t_roots, t_tr):
         """Leader's key inputs: the current input frame, then the mapping's prediction."""
         return (np.concatenate([root[None], t_roots.take(KEY_INDEX, axis=0)]),
                 np.concatenate([cur_local[None], t_tr.take(KEY_INDEX, axis=0)]))
 
-    def partner_keys(self, p_roots, p_tr, t_roots, t_tr):
+    def _partner_keys(self, p_roots, p_tr, t_roots, t_tr):
         """The partner's key inputs: last step's prediction of frame t, then this
         step's; the key roots as her placement makes them (the predicted
         trajectory's shape from her own root, eased towards her target:

@@ -112,7 +112,7 @@ class PastInputKeys(KeySource):
 
     def partner(self, synth, p_roots, p_tr, t_roots, t_tr):
         if not self._fh or not self.follower_past:
-            return synth.partner_keys(p_roots, p_tr, t_roots, t_tr)
+            return None  # the synthesizer's own
         return self._past(self._fh)
 
     def observe(self, synth, tracked, partner):
