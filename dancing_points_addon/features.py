@@ -28,7 +28,7 @@ import numpy as np
 from .representation import (compose_rows, relative_rows, root_relative, rot6d, rot6d_to_matrix, rot_to_local,
                              to_local)
 
-FPS = 30.0
+FPS = 30.0  # the networks' frame rate (every 30 Hz in the runtime, resampling and live is this one)
 PAST = 15
 FUTURE = 30
 N_JOINTS = 31

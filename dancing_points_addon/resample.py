@@ -13,9 +13,9 @@ import numpy as np
 
 from .rotations import matrix_to_quat, quat_slerp, quat_to_matrix
 from .skeleton import Motion
+from .features import FPS as NET_FPS  # the networks' frame rate: what takes are resampled to
 from .formats.take import Take
 
-NET_FPS = 30.0
 _EPS = 1e-9  # relative to the take's duration (at least 1 s): an output time this close to a row is on it
 _ULPS = 16  # ... or this many units in the last place of the take's largest |time|: the times' own resolution
 
