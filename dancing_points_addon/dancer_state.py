@@ -5,6 +5,7 @@ with what keeps a pose state on its root on any length of take
 (:func:`limit_drift`, :func:`recentre`)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from math import sqrt
 
 import numpy as np
@@ -14,15 +15,27 @@ from .representation import (DEVICE_FROM_HEAD, pose_to_world, root_from_head, ro
                              to_local)
 from .skeleton import FEET, HEAD_BONE, TRACKED
 
-# A tracker state whose four foot points all stay this high above the floor for
-# more than this many frames has lost its footing: a closed-loop drift of the
-# autoregressive tracker that long takes showed after 20-30 s (legs folded under
-# a raised pelvis, the feet floating 25-90 cm up, never recovering). The state is
-# then pulled this share of the way to the tracker's start-up pose each frame until
-# a foot is down again. (metres at the tracker's scale, frames, share; chosen on
-# closed-loop runs of each take's train frames, and never active on the SPEC §6
-# val segments: docs/experiments.md)
-FOOTING = (0.15, 5, 0.5)
+
+@dataclass(frozen=True)
+class FootingOptions:
+    """When a tracker state has lost its footing (:meth:`DancerState.keep_footing`):
+    all four foot points more than ``height`` metres (tracker scale) above the
+    floor for more than ``frames`` frames, a closed-loop drift of the
+    autoregressive tracker that long takes showed after 20-30 s (legs folded
+    under a raised pelvis, the feet floating 25-90 cm up, never recovering); it
+    is then pulled ``share`` of the way to the start-up pose each frame until a
+    foot is down. (Chosen on closed-loop runs of each take's train frames, and
+    never active on the SPEC §6 val segments: docs/experiments.md.)"""
+
+    height: float = 0.15
+    frames: int = 5
+    share: float = 0.5
+
+    def __post_init__(self):
+        if not (self.height > 0.0 and self.frames >= 0 and 0.0 < self.share <= 1.0):
+            raise ValueError(f"FootingOptions out of range: {self!r}")
+
+
 # Where the four foot points' heights lie in a pose feature vector (read every frame).
 _FOOT_Y = tuple(int(F.POSE_POS.start + 3 * j + 1) for j in FEET)
 
@@ -35,7 +48,7 @@ class DancerState:
         self.default_pose = default_pose
         self.root = None  # F0 (4,)
         self.pose = None  # (POSE_DIM,)
-        self.off_floor = 0  # frames in a row with every foot point over FOOTING's height
+        self.off_floor = 0  # frames in a row with every foot point over the footing's height
         self.footing_pulls = 0  # frames the state was pulled back (keep_footing)
 
     def place(self, root):
@@ -43,10 +56,10 @@ class DancerState:
         self.pose = self.default_pose.copy()
         self.off_floor = 0
 
-    def keep_footing(self, footing=FOOTING) -> bool:
-        """After a step: a state that has lost its footing (:data:`FOOTING`) is
-        pulled towards the start-up pose. Returns whether it was."""
-        height, frames, share = footing
+    def keep_footing(self, footing: FootingOptions = FootingOptions()) -> bool:
+        """After a step: a state that has lost its footing (:class:`FootingOptions`)
+        is pulled towards the start-up pose. Returns whether it was."""
+        height, frames, share = footing.height, footing.frames, footing.share
         pose = self.pose
         low = min(float(pose[i]) for i in _FOOT_Y)
         self.off_floor = self.off_floor + 1 if low > height else 0

@@ -6,7 +6,7 @@ is a guess. :class:`DeviceFollow` runs after the head and wrist IK, on the
 tracked dancer's final pose, and turns
 
 * the skull (bone ``head``) to the head device's orientation, within
-  :data:`HEAD_LIMIT_DEG` of the chest (bone ``thorax``: the neck bones'
+  ``head_limit_deg`` of the chest (bone ``thorax``: the neck bones'
   twist about themselves moves nothing and is no reference, some mocap takes
   have it half a turn off);
 * for ``joints`` devices, whose hand orientation is the ``*wrist`` bone's
@@ -16,19 +16,18 @@ tracked dancer's final pose, and turns
   unknown: its elbow stays the network's);
 * each forearm's end (bone ``*wrist``, which the CMU skeleton twists: the
   forearm's pronation) about its own axis towards the hand device's
-  orientation, within :data:`TWIST_LIMIT_DEG` of the rest of the forearm
+  orientation, within ``twist_limit_deg`` of the rest of the forearm
   (for ``joints`` devices, this is all);
 * for ``openxr`` devices, whose grip poses carry the hand bones'
   (``*hand``) orientation, then also the hand (``*hand`` and ``*fingers``)
-  about the wrist point, within :data:`FLEX_LIMIT_DEG` of the forearm.
+  about the wrist point, within ``flex_limit_deg`` of the forearm.
 
 For ``openxr`` devices the forearm's direction is not measured: the hand's
 bend at the wrist is unknown. It is estimated as the grip's orientation with
 the hand bent as in the dancer's start-up pose (``hand_flex``; the training
 leader's is within 5–7° of his mean bend), and the forearm's end is pointed
-:data:`FOREARM_SHARE` of the way from the network's direction to it, as for
-``joints`` devices (val: headset takes 8.09 → 7.72 cm full body, joint takes
-7.72; jitter 173 → 181 m/s³).
+``forearm_share`` of the way from the network's direction to it, as for
+``joints`` devices (:class:`DeviceFollowOptions`; figures in models/README.md).
 
 Only rotations change and the children move rigidly with their bones: the
 head point and the wrists stay where the IK put them. A device that is lost
@@ -36,6 +35,7 @@ on a frame (its orientation a guess) turns nothing.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from math import atan2, cos, dist, pi, sin, sqrt
 
 import numpy as np
@@ -44,10 +44,25 @@ from .scalar_kernels import mat_mul, mat_vec, rot_between_s, transpose_s, two_bo
 from .representation import DEVICE_FROM_HEAD
 from .skeleton import JOINT_INDEX
 
-HEAD_LIMIT_DEG = 90.0
-TWIST_LIMIT_DEG = 110.0  # the salsa dancers' forearm twist: -105..73 degrees (0.1..99.9 percentiles, train frames)
-FLEX_LIMIT_DEG = 85.0
-FOREARM_SHARE = 0.7  # openxr: how far the forearm turns to the grip's estimate (val 0.5 / 0.6 / 0.7 / 0.8 / 1)
+
+
+@dataclass(frozen=True)
+class DeviceFollowOptions:
+    """How far the tracked dancer's head and hands turn as the devices do
+    (see the module docstring); degrees."""
+
+    head_limit_deg: float = 90.0  # the skull against the chest
+    # the forearm's end against the rest of the forearm (the salsa dancers' twist: -105..73 degrees,
+    # 0.1..99.9 percentiles of the train frames)
+    twist_limit_deg: float = 110.0
+    flex_limit_deg: float = 85.0  # openxr: the hand against the forearm
+    forearm_share: float = 0.7  # openxr: how far the forearm's end turns to the grip's estimate (chosen on val)
+
+    def __post_init__(self):
+        if not 0.0 <= self.forearm_share <= 1.0:
+            raise ValueError(f"DeviceFollowOptions: forearm_share must lie in [0, 1], not {self.forearm_share!r}")
+        if min(self.head_limit_deg, self.twist_limit_deg, self.flex_limit_deg) < 0.0:
+            raise ValueError(f"DeviceFollowOptions: a negative limit in {self!r}")
 _J = JOINT_INDEX
 _DEVICE_FROM_HEAD = tuple(DEVICE_FROM_HEAD.ravel().tolist())
 
@@ -112,18 +127,17 @@ class DeviceFollow:
     the devices' orientations (see the module docstring). ``bone_vectors``:
     the skeleton's rest bone vectors ``(31, 3)`` at the pose's scale."""
 
-    def __init__(self, bone_vectors, hand_bone: str = "wrist", head_limit=HEAD_LIMIT_DEG,
-                 twist_limit=TWIST_LIMIT_DEG, flex_limit=FLEX_LIMIT_DEG, hand_flex=None,
-                 forearm_share: float = FOREARM_SHARE):
-        """``hand_flex``: for ``hand_bone="hand"``, per side (left, right) the
-        hand bone's rotation relative to the forearm end's (``*wrist``), each
-        ``(3, 3)``, as in a pose of the dancer (:func:`hand_flex`); None: the
-        forearm is left as the network made it."""
+    def __init__(self, bone_vectors, hand_bone: str = "wrist", options: DeviceFollowOptions = DeviceFollowOptions(),
+                 hand_flex=None):
+        """``options``: a :class:`DeviceFollowOptions`; ``hand_flex``: for
+        ``hand_bone="hand"``, per side (left, right) the hand bone's rotation
+        relative to the forearm end's (``*wrist``), each ``(3, 3)``, as in a
+        pose of the dancer (:func:`hand_flex`); None: the forearm is left as
+        the network made it."""
         if hand_bone not in ("wrist", "hand"):
             raise ValueError(f"DeviceFollow: hand_bone must be 'wrist' or 'hand', not {hand_bone!r}")
-        if not 0.0 <= forearm_share <= 1.0:
-            raise ValueError(f"DeviceFollow: forearm_share must lie in [0, 1], not {forearm_share!r}")
-        self.forearm_share = float(forearm_share)
+        self.forearm_share = float(options.forearm_share)
+        head_limit, twist_limit, flex_limit = options.head_limit_deg, options.twist_limit_deg, options.flex_limit_deg
         bv = np.asarray(bone_vectors, dtype=np.float64)
         self.head_vec = bv[_J["head"]]
         self.hand_bone = hand_bone

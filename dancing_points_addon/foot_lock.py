@@ -14,19 +14,34 @@ from .scalar_kernels import I3, mat_vec, rot_between_s, rot_scale, smooth01, two
 from .skeleton import FEET, JOINT_INDEX
 
 _J = JOINT_INDEX
-# Kinematic contacts (m, m/s, m per frame): a foot point within KIN_HEIGHT of its floor and slower
-# than KIN_SPEED counts as planted (2 cm: a point a few centimetres up crossed the line on a
-# millimetre of input noise and locked a frame earlier or later; models/README.md, docs/experiments.md).
-KIN_HEIGHT, KIN_SPEED, KIN_FLOOR_RISE = 0.02, 1.5, 0.001
+
+
+@dataclass(frozen=True)
+class KinematicOptions:
+    """Kinematic contact evidence (:class:`KinematicContacts`): a foot point
+    within ``height`` metres of its floor and slower than ``speed`` m/s counts
+    as planted; its floor is the lowest height seen, rising ``floor_rise``
+    metres a frame (2 cm: a point a few centimetres up crossed the line on a
+    millimetre of input noise and locked a frame earlier or later;
+    docs/experiments.md)."""
+
+    height: float = 0.02
+    speed: float = 1.5
+    floor_rise: float = 0.001
+
+    def __post_init__(self):
+        if not (self.height > 0.0 and self.speed > 0.0 and self.floor_rise >= 0.0):
+            raise ValueError(f"KinematicOptions out of range: {self!r}")
 
 
 class KinematicContacts:
     """Contact evidence from the predicted motion itself (causal), one dancer:
     a foot point low above its floor (the lowest height seen lately, rising
-    :data:`KIN_FLOOR_RISE` a frame) and slow since the last frame counts as
-    planted, whatever the network's contact output says."""
+    ``floor_rise`` a frame) and slow since the last frame counts as planted,
+    whatever the network's contact output says (:class:`KinematicOptions`)."""
 
-    def __init__(self):
+    def __init__(self, options: KinematicOptions = KinematicOptions()):
+        self.o = options
         self.prev = None  # last frame's four foot points (plain floats)
         self.floor = None  # per foot point, its floor level as seen so far
 
@@ -38,15 +53,17 @@ class KinematicContacts:
         if floor is None:
             floor = [y for _, y, _ in feet]
         else:
-            floor = [min(f + KIN_FLOOR_RISE, y) for f, (_, y, _) in zip(floor, feet)]
+            rise = self.o.floor_rise
+            floor = [min(f + rise, y) for f, (_, y, _) in zip(floor, feet)]
         self.floor = floor
         if prev is None:
             return np.zeros(4)
         out = []
+        height, fast = self.o.height, self.o.speed
         for (x, y, z), (px, _, pz), f in zip(feet, prev, floor):
             dx, dz = x - px, z - pz
             speed = sqrt(dx * dx + dz * dz) * FPS
-            out.append(1.0 if y - f < KIN_HEIGHT and speed < KIN_SPEED else 0.0)
+            out.append(1.0 if y - f < height and speed < fast else 0.0)
         return np.array(out)
 
 

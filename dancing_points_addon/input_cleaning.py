@@ -6,8 +6,10 @@ trajectory): the head follows the predicted root and height, turning its last
 orientation by the predicted change of heading; a hand takes its predicted
 place relative to the head. Before any prediction exists, devices are held.
 A device that comes back blends in from where its stand-in was
-(:data:`RETURN_RATE`)."""
+(:class:`ReturnOptions`)."""
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -15,20 +17,34 @@ from .device_follow import limit_rotation
 from .representation import root_from_head, root_relative, to_local, to_world
 from .rotations import quat_to_matrix, rotation_angle
 
-# A device that comes back after a loss blends in from where its stand-in was: the gap
-# closes by this share a frame, at least RETURN_MIN and at most RETURN_MAX metres (or the
-# head's turn, RETURN_TURN radians): a hand 0.9 m off is back within 0.6 s, moving no
-# faster than the dancer plus 4 cm a frame.
-RETURN_RATE, RETURN_MIN, RETURN_MAX, RETURN_TURN = 0.3, 0.003, 0.04, 0.1
+
+@dataclass(frozen=True)
+class ReturnOptions:
+    """How a device that comes back after a loss blends in from where its
+    stand-in was: the gap closes by ``rate`` a frame, at least ``least`` and at
+    most ``most`` metres (the head's turn at most ``turn`` radians): a hand
+    0.9 m off is back within 0.6 s, moving no faster than the dancer plus 4 cm
+    a frame."""
+
+    rate: float = 0.3
+    least: float = 0.003
+    most: float = 0.04
+    turn: float = 0.1
+
+    def __post_init__(self):
+        if not (0.0 < self.rate <= 1.0 and 0.0 < self.least <= self.most and self.turn > 0.0):
+            raise ValueError(f"ReturnOptions out of range: {self!r}")
 
 
 class InputCleaner:
     """The devices of one frame after another, cleaned (:meth:`clean`).
     ``default_points``: the tracker's default pose's three points (3, 3),
-    training scale: where a device never seen stands."""
+    training scale: where a device never seen stands; ``options``: a
+    :class:`ReturnOptions`."""
 
-    def __init__(self, default_points):
+    def __init__(self, default_points, options: ReturnOptions = ReturnOptions()):
         self.default_points = np.asarray(default_points, dtype=np.float64)
+        self.o = options
         self.reset()
 
     def reset(self) -> None:
@@ -96,15 +112,16 @@ class InputCleaner:
 
     def _blend_point(self, i, real):
         """Device ``i``'s point this frame: where it really is, plus what is left of
-        the gap to its stand-in when it came back (:data:`RETURN_RATE`)."""
+        the gap to its stand-in when it came back (:class:`ReturnOptions`)."""
         gap = self._return[i]
         if gap is None:  # it is back on this frame: the gap from last frame's stand-in
             gap = self._prev_used[0][i] - real
         n = float(np.sqrt(gap @ gap))
-        if n <= RETURN_MIN:
+        o = self.o
+        if n <= o.least:
             self._return[i] = None
             return real
-        self._return[i] = gap * (1.0 - min(RETURN_MAX, max(RETURN_MIN, RETURN_RATE * n)) / n)
+        self._return[i] = gap * (1.0 - min(o.most, max(o.least, o.rate * n)) / n)
         return real + self._return[i]
 
     def _blend_head(self, head_pos, head_rot, valid):
@@ -121,5 +138,5 @@ class InputCleaner:
         if a <= 1e-3:
             self._return_turn = None
             return pos, head_rot
-        self._return_turn = limit_rotation(turn, a - min(RETURN_TURN, max(1e-3, RETURN_RATE * a)))
+        self._return_turn = limit_rotation(turn, a - min(self.o.turn, max(1e-3, self.o.rate * a)))
         return pos, self._return_turn @ head_rot

@@ -34,7 +34,7 @@ from .keys import KEY_INDEX, KeySource
 from .follower import OUT_SMOOTH, FollowerOptions, Placement, PulledRoot, Separation, check_partner_networks
 from .partner_pose import HandHold, HipTwist, PartnerPose, hip_heading_from_probs
 from .synthesis_options import SynthesisOptions
-from .tracked_pose import TrackedPose
+from .tracked_pose import TrackedOptions, TrackedPose
 from .nets import contact_floor_levels, default_pose, load_nets, meta_json
 from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose)
 from .representation import hip_frame, root_compose, to_local, to_world
@@ -42,12 +42,6 @@ from .rotations import quat_to_matrix
 from .skeleton import JOINT_INDEX, LOWER_BODY, TRACKED
 
 CALIBRATION_FRAMES = 30  # live, without a calibration: the height is estimated over the first second
-# The tracked dancer's foot lock (``foot_lock.TRACKED_FOOT_LOCK``) reads the contact network's
-# probabilities of him beside his tracker's contacts and the kinematic evidence (the highest of
-# the three), and plants his feet at most TRACKED_LOCK_FLOOR above his floor levels (the contact
-# network's, training scale), which his swing clearance lifts from. The tracker's contacts alone
-# missed steps on bodies it never saw (models/README.md).
-TRACKED_LOCK_FLOOR = 0.01
 DEFAULT_FLOOR_LEVELS = (0.07, 0.04, 0.07, 0.04)  # ankle, ball (m): without the contact network's levels
 
 
@@ -87,6 +81,7 @@ class Synthesizer:
 
     def __init__(self, options: SynthesisOptions | None = None, nets: dict | None = None,
                  follower: FollowerOptions | None = FollowerOptions(), record_predictions: bool = False,
+                 tracked: TrackedOptions = TrackedOptions(),
                  keys: KeySource | None = None):
         options = options or SynthesisOptions()
         self.options = options
@@ -98,6 +93,7 @@ class Synthesizer:
         self.foot_lock = options.foot_lock
         self.hand_ik = options.hand_ik
         self.follower_options = follower
+        self.tracked_options = tracked
         # Rigid skeleton: the neck may turn but the spine may not stretch, so a
         # baked armature (fixed bone lengths) shows exactly this pose.
         self.ik_options = {"max_stretch": 0.0, "arm": "swing"}
@@ -119,7 +115,8 @@ class Synthesizer:
         # Each slot's rest skeleton (the tracked dancer's, the partner's), from its (FK-consistent) default pose.
         self.bone_vectors = {r: bone_vectors_from_pose(F.pose_positions(p), F.pose_rotations(p))
                              for r, p in self.default_pose.items()}
-        self.cleaner = InputCleaner(F.pose_positions(self.default_pose["tracked"])[TRACKED])
+        self.cleaner = InputCleaner(F.pose_positions(self.default_pose["tracked"])[TRACKED],
+                                    self.tracked_options.returns)
         self._recovery = (PoseRecovery(self.bone_vectors["tracked"]), PoseRecovery(self.bone_vectors["partner"]))
         # each dancer's floor level per foot point (training scale), from the contact network
         contacts = nets.get("contacts")
@@ -172,6 +169,7 @@ class Synthesizer:
         self._followed = self.calibration.followed if self.calibration is not None else (True, True, True)
         if self.options.follow_devices and any(self._followed):
             self._follow = DeviceFollow(self.bone_vectors["tracked"], "hand" if devices == "openxr" else "wrist",
+                                        self.tracked_options.devices,
                                         hand_flex=hand_flex(F.pose_rotations(self.default_pose["tracked"])))
         self._lockers = None
         self._effector = None
@@ -186,10 +184,11 @@ class Synthesizer:
         if self.foot_lock or self.hand_ik:
             from . import ik
             if self.foot_lock:
-                from .foot_lock import TRACKED_FOOT_LOCK, FootLocker, FootLockOptions
-                floor = None if self.floor_levels is None else [f + TRACKED_LOCK_FLOOR
+                from .foot_lock import FootLocker, FootLockOptions
+                to = self.tracked_options
+                floor = None if self.floor_levels is None else [f + to.lock_floor
                                                                 for f in self.floor_levels["leader"]]
-                self._lockers = (FootLocker(TRACKED_FOOT_LOCK, floor),
+                self._lockers = (FootLocker(to.foot_lock, floor),
                                  FootLocker(fo.foot_lock if fo is not None else FootLockOptions()))
                 if self._net_steps and fo.steps.lock_floor >= 0:  # her locks go on her floor (the train split's)
                     self._lockers[1].floor = [f + fo.steps.lock_floor for f in self.floor_levels["follower"]]
@@ -219,7 +218,8 @@ class Synthesizer:
             self._out_twist = np.radians(limits).tolist()
             self._leg_joints = self._leg_joints or LegJoints(self.bone_vectors["partner"])
         lockers = self._lockers or (None, None)
-        self._tracked_pose = TrackedPose(lockers[0], self._floor_guards[0], self._effector, self._follow)
+        self._tracked_pose = TrackedPose(lockers[0], self._floor_guards[0], self._effector, self._follow,
+                                         self.tracked_options)
         self._partner_pose = PartnerPose(lockers[1], self._floor_guards[1], self._partner_effector, self._net_steps,
                                     self._out_twist, self._leg_joints)
         self.keys.reset(self)
@@ -388,7 +388,7 @@ class Synthesizer:
             self._leg_joints.twist(*rigid[1])
         for d, (p, r), c in zip((self.tracked, self.partner), rigid, (tc, pc)):
             d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
-        self.tracked.keep_footing()  # the tracked dancer's state back on its feet if it drifted off them
+        self.tracked.keep_footing(self.tracked_options.footing)  # his state back on its feet if it drifted off
         if self._anchor > 0.0:  # her output's hip joints turn with her pelvis (her state's need not)
             self._leg_joints.hips(*rigid[1])
         if self._hip_twist is not None:  # her hips towards where the hip-heading network says she faces

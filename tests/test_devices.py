@@ -219,7 +219,9 @@ def test_grip_turns_the_forearm_by_the_dancers_hand_bend(synth, take08):
     pose the grip came from, when that pose's bend is given), a share of the
     way by default; the wrist point and every bone length kept; without a bend
     nothing but the hand turns."""
-    from dancing_points_addon.device_follow import FOREARM_SHARE, DeviceFollow, hand_flex
+    from dancing_points_addon.device_follow import DeviceFollow, DeviceFollowOptions, hand_flex
+
+    shipped = DeviceFollowOptions().forearm_share
     from dancing_points_addon.ik import rotation_between
     from dancing_points_addon.skeleton import bone_lengths_from_positions
 
@@ -242,16 +244,16 @@ def test_grip_turns_the_forearm_by_the_dancers_hand_bend(synth, take08):
     start = angle(R0, want)
     assert start > 20.0
     got = {}
-    for share in (1.0, FOREARM_SHARE):
-        P, R = DeviceFollow(bv, "hand", hand_flex=flex, forearm_share=share).step(P0.copy(), R0.copy(), None,
-                                                                                (grip, None))
+    for share in (1.0, shipped):
+        follow = DeviceFollow(bv, "hand", DeviceFollowOptions(forearm_share=share), hand_flex=flex)
+        P, R = follow.step(P0.copy(), R0.copy(), None, (grip, None))
         assert np.abs(P[J["lwrist"]] - wr).max() < 1e-9
         lengths = bone_lengths_from_positions(np.stack([P, P0]))
         assert np.abs(lengths[0] - lengths[1]).max() < 1e-9
         got[share] = angle(R, want)
-    print(f"\nforearm off the grip's estimate: {start:.1f} deg before, {got[FOREARM_SHARE]:.1f} at the default "
+    print(f"\nforearm off the grip's estimate: {start:.1f} deg before, {got[shipped]:.1f} at the default "
           f"share, {got[1.0]:.4f} all the way")
-    assert got[1.0] < 1e-4 and 0.1 * start < got[FOREARM_SHARE] < 0.5 * start
+    assert got[1.0] < 1e-4 and 0.1 * start < got[shipped] < 0.5 * start
     P, R = DeviceFollow(bv, "hand").step(P0.copy(), R0.copy(), None, (grip, None))
     assert abs(angle(R, want) - start) < 1e-6 and np.abs(P[J["lradius"]] - P0[J["lradius"]]).max() < 1e-12
 
@@ -389,17 +391,17 @@ def test_moving_a_pose_keeps_its_ankles_and_bones(synth, take08):
             assert np.abs(rots[j] @ rest_dir[j] - d / np.linalg.norm(d)).max() < 1e-6
 
 
-def test_the_tracked_head_point_reaches_its_device(take08, monkeypatch):
+def test_the_tracked_head_point_reaches_its_device(take08):
     """The tracked dancer's head point reaches its device: his body moves most
-    of the way there (``tracked_pose.HEAD_REACH``), his legs keeping his ankles;
-    the rigid spine alone (``HEAD_REACH = 0``) left it more than twice as far."""
-    from dancing_points_addon import tracked_pose
+    of the way there (``TrackedOptions.head_reach``), his legs keeping his
+    ankles; the rigid spine alone (``head_reach=0``) left it more than twice
+    as far."""
+    from dancing_points_addon.tracked_pose import TrackedOptions
 
-    take, shipped = take08[0], tracked_pose.HEAD_REACH
+    take, shipped = take08[0], TrackedOptions().head_reach
     off = {}
     for reach in (shipped, 0.0):
-        monkeypatch.setattr(tracked_pose, "HEAD_REACH", reach)
-        duet = Synthesizer().synthesize(take)
+        duet = Synthesizer(tracked=TrackedOptions(head_reach=reach)).synthesize(take)
         tk = resample_take(apply_calibration(take, duet.calibration), F.FPS)
         n = min(len(tk.positions), len(duet.leader_positions))
         off[reach] = np.linalg.norm(duet.leader_positions[30:n, TRACKED[0]] - tk.positions[30:n, 0], axis=-1).mean()
