@@ -11,6 +11,7 @@ from math import sqrt
 import numpy as np
 
 from . import features as F
+from .option_checks import check_range
 from .representation import (DEVICE_FROM_HEAD, pose_to_world, root_from_head, rot_to_local,
                              to_local)
 from .skeleton import FEET, HEAD_BONE, TRACKED
@@ -32,8 +33,9 @@ class FootingOptions:
     share: float = 0.5
 
     def __post_init__(self):
-        if not (self.height > 0.0 and self.frames >= 0 and 0.0 < self.share <= 1.0):
-            raise ValueError(f"FootingOptions out of range: {self!r}")
+        check_range("FootingOptions", "height", self.height, 0.0, low_open=True)
+        check_range("FootingOptions", "frames", self.frames, 0)
+        check_range("FootingOptions", "share", self.share, 0.0, 1.0, low_open=True)
 
 
 # Where the four foot points' heights lie in a pose feature vector (read every frame).

@@ -40,6 +40,7 @@ from math import atan2, cos, dist, pi, sin, sqrt
 
 import numpy as np
 
+from .option_checks import check_range
 from .scalar_kernels import mat_mul, mat_vec, rot_between_s, transpose_s, two_bone_s
 from .representation import DEVICE_FROM_HEAD
 from .skeleton import JOINT_INDEX
@@ -59,10 +60,9 @@ class DeviceFollowOptions:
     forearm_share: float = 0.7  # openxr: how far the forearm's end turns to the grip's estimate (chosen on val)
 
     def __post_init__(self):
-        if not 0.0 <= self.forearm_share <= 1.0:
-            raise ValueError(f"DeviceFollowOptions: forearm_share must lie in [0, 1], not {self.forearm_share!r}")
-        if min(self.head_limit_deg, self.twist_limit_deg, self.flex_limit_deg) < 0.0:
-            raise ValueError(f"DeviceFollowOptions: a negative limit in {self!r}")
+        for name in ("head_limit_deg", "twist_limit_deg", "flex_limit_deg"):
+            check_range("DeviceFollowOptions", name, getattr(self, name), 0.0, 180.0)
+        check_range("DeviceFollowOptions", "forearm_share", self.forearm_share, 0.0, 1.0)
 _J = JOINT_INDEX
 _DEVICE_FROM_HEAD = tuple(DEVICE_FROM_HEAD.ravel().tolist())
 

@@ -41,6 +41,7 @@ import numpy as np
 
 from .features import FPS
 from .foot_lock import FootLockOptions
+from .option_checks import check_kinds, check_range
 from .representation import blend_root, compose_floats, relative_rows, segments_gap
 from .skeleton import JOINT_INDEX
 
@@ -50,16 +51,6 @@ PELVIS, NECK = JOINT_INDEX["root"], JOINT_INDEX["lowerneck"]
 def _compose(ref, rel):
     """:func:`~.representation.root_compose` of two roots given as lists."""
     return compose_floats([float(v) for v in ref], [float(v) for v in rel])
-
-
-def _check(owner, name, value, low=None, high=None, low_open=False):
-    """``value`` within ``low`` .. ``high`` (``low`` excluded when ``low_open``), or
-    a ValueError naming ``owner.name``."""
-    ok = (low is None or (value > low if low_open else value >= low)) and (high is None or value <= high)
-    if not ok:
-        lo = "" if low is None else (f"> {low}" if low_open else f">= {low}")
-        hi = "" if high is None else f"<= {high}"
-        raise ValueError(f"{owner}.{name} must be {' and '.join(x for x in (lo, hi) if x)}, not {value!r}")
 
 
 @dataclass(frozen=True)
@@ -80,13 +71,13 @@ class PlacementOptions:
     min_distance: float = 0.2  # m, between the torso axes (0: no separation)
 
     def __post_init__(self):
-        _check("PlacementOptions", "horizon", self.horizon, 1)
+        check_range("PlacementOptions", "horizon", self.horizon, 1)
         for name in ("pull", "pull_heading", "face_leader", "ease"):
-            _check("PlacementOptions", name, getattr(self, name), 0.0, 1.0)
-        _check("PlacementOptions", "smooth", self.smooth, 0.0, 1.0)
+            check_range("PlacementOptions", name, getattr(self, name), 0.0, 1.0)
+        check_range("PlacementOptions", "smooth", self.smooth, 0.0, 1.0)
         for name in ("max_speed", "max_turn", "max_offset", "max_gap"):
-            _check("PlacementOptions", name, getattr(self, name), 0.0, low_open=True)
-        _check("PlacementOptions", "min_distance", self.min_distance, 0.0)
+            check_range("PlacementOptions", name, getattr(self, name), 0.0, low_open=True)
+        check_range("PlacementOptions", "min_distance", self.min_distance, 0.0)
 
 
 @dataclass(frozen=True)
@@ -100,11 +91,11 @@ class PoseOptions:
     out_smooth: float | None = None  # share of the last output frame kept in the next (0: none; None: OUT_SMOOTH)
 
     def __post_init__(self):
-        _check("PoseOptions", "anchor", self.anchor, 0.0, 1.0)
-        _check("PoseOptions", "arm_turn", self.arm_turn, 0.0)
-        _check("PoseOptions", "out_thigh_twist", self.out_thigh_twist, 0.0, 180.0)
+        check_range("PoseOptions", "anchor", self.anchor, 0.0, 1.0)
+        check_range("PoseOptions", "arm_turn", self.arm_turn, 0.0)
+        check_range("PoseOptions", "out_thigh_twist", self.out_thigh_twist, 0.0, 180.0)
         if self.out_smooth is not None:
-            _check("PoseOptions", "out_smooth", self.out_smooth, 0.0, 0.99)
+            check_range("PoseOptions", "out_smooth", self.out_smooth, 0.0, 0.99)
 
 
 @dataclass(frozen=True)
@@ -117,9 +108,9 @@ class HipOptions:
     rate: float = 0.2  # share of the remaining turn eased a frame
 
     def __post_init__(self):
-        _check("HipOptions", "share", self.share, 0.0, 1.0)
-        _check("HipOptions", "max_deg", self.max_deg, 0.0, 180.0)
-        _check("HipOptions", "rate", self.rate, 0.0, 1.0)
+        check_range("HipOptions", "share", self.share, 0.0, 1.0)
+        check_range("HipOptions", "max_deg", self.max_deg, 0.0, 180.0)
+        check_range("HipOptions", "rate", self.rate, 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -141,16 +132,16 @@ class HoldOptions:
     near: float = 0.35  # × the arm: a hold whose goal is this close to the shoulder fades out (±0.1; 0: never)
 
     def __post_init__(self):
-        _check("HoldOptions", "on", self.on, 0.0)
-        _check("HoldOptions", "off", self.off, self.on)
-        _check("HoldOptions", "gap", self.gap, 0.0)
-        _check("HoldOptions", "frames", self.frames, 1)
-        _check("HoldOptions", "soft", self.soft, 0.0, low_open=True)
-        _check("HoldOptions", "spring", self.spring, 0.0, low_open=True)
+        check_range("HoldOptions", "on", self.on, 0.0)
+        check_range("HoldOptions", "off", self.off, self.on)
+        check_range("HoldOptions", "gap", self.gap, 0.0)
+        check_range("HoldOptions", "frames", self.frames, 1)
+        check_range("HoldOptions", "soft", self.soft, 0.0, low_open=True)
+        check_range("HoldOptions", "spring", self.spring, 0.0, low_open=True)
         for name in ("lead", "lead_smooth", "soft_rate"):
-            _check("HoldOptions", name, getattr(self, name), 0.0, 1.0)
-        _check("HoldOptions", "reach", self.reach, 0.0, low_open=True)
-        _check("HoldOptions", "near", self.near, 0.0)
+            check_range("HoldOptions", name, getattr(self, name), 0.0, 1.0)
+        check_range("HoldOptions", "reach", self.reach, 0.0, low_open=True)
+        check_range("HoldOptions", "near", self.near, 0.0)
 
 
 @dataclass(frozen=True)
@@ -162,7 +153,7 @@ class StepOptions:
     lock_floor: float = 0.01  # m: a planting foot is put at most this far above the floor (< 0: where it is)
 
     def __post_init__(self):
-        _check("StepOptions", "contact_smooth", self.contact_smooth, 0.0, 0.99)
+        check_range("StepOptions", "contact_smooth", self.contact_smooth, 0.0, 0.99)
 
 
 # The partner's foot lock: the tracked dancer's (``FootLockOptions()``) with
@@ -204,10 +195,8 @@ class FollowerOptions:
     foot_lock: FootLockOptions = PARTNER_FOOT_LOCK  # the foot lock (``foot_lock.FootLocker``)
 
     def __post_init__(self):
-        for name, kind in (("placement", PlacementOptions), ("pose", PoseOptions), ("hips", HipOptions),
-                           ("holds", HoldOptions), ("steps", StepOptions), ("foot_lock", FootLockOptions)):
-            if not isinstance(getattr(self, name), kind):
-                raise TypeError(f"FollowerOptions.{name} must be a {kind.__name__}, not {getattr(self, name)!r}")
+        check_kinds(self, {"placement": PlacementOptions, "pose": PoseOptions, "hips": HipOptions,
+                           "holds": HoldOptions, "steps": StepOptions, "foot_lock": FootLockOptions})
 
 
 # ``PoseOptions.out_smooth`` by the synthesised partner's dance role: his

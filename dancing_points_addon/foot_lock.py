@@ -10,6 +10,7 @@ from math import pi, sin, sqrt
 import numpy as np
 
 from .features import FPS
+from .option_checks import check_range
 from .scalar_kernels import I3, mat_vec, rot_between_s, rot_scale, smooth01, two_bone_s
 from .skeleton import FEET, JOINT_INDEX
 
@@ -30,8 +31,9 @@ class KinematicOptions:
     floor_rise: float = 0.001
 
     def __post_init__(self):
-        if not (self.height > 0.0 and self.speed > 0.0 and self.floor_rise >= 0.0):
-            raise ValueError(f"KinematicOptions out of range: {self!r}")
+        check_range("KinematicOptions", "height", self.height, 0.0, low_open=True)
+        check_range("KinematicOptions", "speed", self.speed, 0.0, low_open=True)
+        check_range("KinematicOptions", "floor_rise", self.floor_rise, 0.0)
 
 
 class KinematicContacts:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .option_checks import check_range
 from .device_follow import limit_rotation
 from .representation import root_from_head, root_relative, to_local, to_world
 from .rotations import quat_to_matrix, rotation_angle
@@ -32,8 +33,10 @@ class ReturnOptions:
     turn: float = 0.1
 
     def __post_init__(self):
-        if not (0.0 < self.rate <= 1.0 and 0.0 < self.least <= self.most and self.turn > 0.0):
-            raise ValueError(f"ReturnOptions out of range: {self!r}")
+        check_range("ReturnOptions", "rate", self.rate, 0.0, 1.0, low_open=True)
+        check_range("ReturnOptions", "least", self.least, 0.0, low_open=True)
+        check_range("ReturnOptions", "most", self.most, self.least)
+        check_range("ReturnOptions", "turn", self.turn, 0.0, low_open=True)
 
 
 class InputCleaner:

@@ -16,6 +16,7 @@ from .dancer_state import FootingOptions
 from .device_follow import DeviceFollowOptions
 from .foot_lock import TRACKED_FOOT_LOCK, FootLockOptions, KinematicContacts, KinematicOptions
 from .input_cleaning import ReturnOptions
+from .option_checks import check_kinds, check_range
 from .pose import move_keeping_feet
 from .skeleton import TRACKED
 
@@ -46,9 +47,11 @@ class TrackedOptions:
     devices: DeviceFollowOptions = field(default_factory=DeviceFollowOptions)
 
     def __post_init__(self):
-        if not (0.0 <= self.head_reach <= 1.0 and self.head_reach_max >= 0.0 and self.lock_floor >= 0.0):
-            raise ValueError(f"TrackedOptions out of range: head_reach {self.head_reach!r}, head_reach_max "
-                             f"{self.head_reach_max!r}, lock_floor {self.lock_floor!r}")
+        check_range("TrackedOptions", "head_reach", self.head_reach, 0.0, 1.0)
+        check_range("TrackedOptions", "head_reach_max", self.head_reach_max, 0.0)
+        check_range("TrackedOptions", "lock_floor", self.lock_floor, 0.0, 0.1)
+        check_kinds(self, {"foot_lock": FootLockOptions, "kinematic": KinematicOptions, "footing": FootingOptions,
+                           "returns": ReturnOptions, "devices": DeviceFollowOptions})
 
 
 class TrackedPose:

@@ -646,8 +646,8 @@ def test_splice_takes_her_roots_only():
 
 
 def test_options_check_themselves():
-    """Each options part refuses a value out of its range with its own name,
-    on creation; the defaults are the shipped runtime's."""
+    """Each options part (hers and his) refuses a value out of its range with
+    its own name, on creation; the defaults are the shipped runtime's."""
     from dancing_points_addon.follower import (PARTNER_FOOT_LOCK, FollowerOptions, HipOptions, HoldOptions,
                                                PlacementOptions, PoseOptions, StepOptions)
     from dancing_points_addon.foot_lock import FootLocker, FootLockOptions
@@ -664,6 +664,22 @@ def test_options_check_themselves():
                         (lambda: FootLockOptions(step_frames=0), "step_frames")):
         with pytest.raises(ValueError, match=match):
             make()
+    from dancing_points_addon.dancer_state import FootingOptions
+    from dancing_points_addon.device_follow import DeviceFollowOptions
+    from dancing_points_addon.foot_lock import KinematicOptions
+    from dancing_points_addon.input_cleaning import ReturnOptions
+    from dancing_points_addon.tracked_pose import TrackedOptions
+
+    for make, match in ((lambda: TrackedOptions(head_reach=1.5), "TrackedOptions.head_reach"),
+                        (lambda: TrackedOptions(lock_floor=-0.01), "TrackedOptions.lock_floor"),
+                        (lambda: KinematicOptions(speed=0.0), "KinematicOptions.speed"),
+                        (lambda: FootingOptions(share=0.0), "FootingOptions.share"),
+                        (lambda: ReturnOptions(least=0.05, most=0.04), "ReturnOptions.most"),
+                        (lambda: DeviceFollowOptions(forearm_share=1.2), "DeviceFollowOptions.forearm_share")):
+        with pytest.raises(ValueError, match=match):
+            make()
+    with pytest.raises(TypeError, match="TrackedOptions.footing"):
+        TrackedOptions(footing=(0.15, 5, 0.5))
     with pytest.raises(TypeError, match="FollowerOptions.holds"):
         FollowerOptions(holds=PoseOptions())
     o = FollowerOptions()
