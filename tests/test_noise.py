@@ -113,6 +113,7 @@ def test_two_micrometres_of_noise_move_no_joint_a_centimetre(salsa_dir, tmp_path
     assert max(worst.values()) < 0.01
 
 
+@pytest.mark.eval
 def test_the_int8_compute_is_what_flipped(salsa_dir, tmp_path):
     # the same noise through the int8 compute: millimetres on every take, centimetres on some
     worst = _noise_runs(salsa_dir, tmp_path, "int8", takes=("02", "06", "07"))
