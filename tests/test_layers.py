@@ -164,3 +164,11 @@ def test_formats_import_nothing_of_the_synthesis():
             if dep in core and dep.startswith(CORE + "."):
                 top = dep[len(CORE) + 1:].split(".")[0]
                 assert top in FORMATS_MAY_IMPORT, (name, dep)
+
+
+def test_no_core_module_over_500_lines():
+    """A module of the core that grows past 500 lines is split by what its
+    parts do (the frame's stages each have their own)."""
+    long = {name: n for name, path in _modules(CORE).items()
+            if (n := len(path.read_text(encoding="utf-8").splitlines())) > 500}
+    assert not long, long
