@@ -62,14 +62,18 @@ RECENTRE_POSE = {"leader": 0.05, "follower": True}
 # Frames :meth:`Synthesizer.synthesize` reads ahead of the frame loop (between
 # lost devices) to run the networks on the input once for all of them.
 READ_AHEAD = 256
+
+
 class Synthesizer:
     """Holds the ONNX sessions (:data:`~.nets.MODEL_FILES`) and the rollout state.
 
     ``options``: a :class:`SynthesisOptions`; ``nets``: already loaded networks
     (default: :func:`~.nets.load_nets` of ``options.models``); ``follower``: the
     follower's placement state, torso separation and hand holds
-    (:class:`~.follower.FollowerOptions`; None: the earlier path, her root
-    pulled towards the raw prediction). Both dancers' next tracker step starts
+    (:class:`~.follower.FollowerOptions`; None: no partner model, her root
+    pulled towards the raw prediction: :class:`~.follower.PulledRoot`);
+    ``tracked``: the tracked dancer's (:class:`~.tracked_pose.TrackedOptions`).
+    Both dancers' next tracker step starts
     from the consistent skeleton pose of this one (pose recovery). The contact
     network (``nets["contacts"]``, on the mapping's input) times the follower's
     steps: her foot lock reads its probabilities (``FollowerOptions.foot_lock``),
