@@ -632,8 +632,8 @@ def test_datagrams_that_come_during_a_frame_wait_and_keep_their_arrival(take, ke
 
 @pytest.mark.parametrize("listened", [True, False])
 def test_no_silence_while_datagrams_wait_to_be_read(take, synth, listened):
-    """A receiver that cannot read for a while (a busy machine; here its hold
-    taken for 0.4 s, longer than the silence gap) while the dancer keeps
+    """A receiver that cannot read for a while (a busy machine; here a hold of
+    its own taken for 0.4 s, longer than the silence gap) while the dancer keeps
     sending: the loop declares no silence while datagrams wait in the socket,
     so none of them comes late and the take has no lost rows. (Not listened
     to, the loop sees silence and drops the samples that arrived in it.)"""
@@ -644,6 +644,7 @@ def test_no_silence_while_datagrams_wait_to_be_read(take, synth, listened):
     s.listen_to(rx)
     if not listened:
         s.waiting = None
+    starved = rx.hold = threading.Lock()  # (not the session's: its loop stays free to see silence)
     rx.start()
     s.start()
     t, pos, quats = stream_rows(take, 72.0)
@@ -654,14 +655,14 @@ def test_no_silence_while_datagrams_wait_to_be_read(take, synth, listened):
             while time.perf_counter() < t0 + t[i]:
                 time.sleep(0.0005)
             if i == 36:
-                s.busy.acquire()  # the receiver stops reading (as if it had no CPU)
+                starved.acquire()  # the receiver stops reading (as if it had no CPU)
             elif i == 65:
-                s.busy.release()
+                starved.release()
             tx.sendto(P.sample_datagrams("vmc", i, float(t[i]), pos[i], quats[i])[0], ("127.0.0.1", rx.port))
         time.sleep(0.1)
     finally:
-        if s.busy.locked():
-            s.busy.release()
+        if starved.locked():
+            starved.release()
         tx.close()
         rx.stop()
     res = s.finish()
