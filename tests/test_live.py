@@ -630,6 +630,26 @@ def test_datagrams_that_come_during_a_frame_wait_and_keep_their_arrival(take, ke
     assert abs(np.median(np.diff(stamps)) - np.median(np.diff(sent))) < 0.001
 
 
+def test_a_tick_reads_the_samples_put_before_it(take, synth):
+    """The loop's silence check (``tick``) first reads the samples already put:
+    a receiver that handed over its held samples just before it must not see
+    them dropped as late behind a row of silence."""
+    s = LiveSession(LiveOptions(source="vmc", models=MODELS, height=1.7, floor_y=0.0),
+                    Synthesizer(SynthesisOptions(models=MODELS), nets=synth.nets))
+    t, pos, quats = stream_rows(take, 72.0)
+    asm = SampleAssembler(P.VmcDecoder(), s.feed, s.counters)
+    for i in range(72):
+        asm.datagram(P.sample_datagrams("vmc", i, float(t[i]), pos[i], quats[i])[0], 100.0 + float(t[i]))
+    asm.sink = s.put  # the next one is put, not yet read (as from the receiver's thread)
+    asm.datagram(P.sample_datagrams("vmc", 72, float(t[72]), pos[72], quats[72])[0], 100.0 + float(t[72]))
+    s.tick(100.0 + float(t[72]) + 0.2)  # silence after it, not before it
+    n = s.rows.n
+    assert n == 74 and np.isnan(s.rows.pos[n - 1]).all() and not np.isnan(s.rows.pos[n - 2]).any()
+    res = s.finish()  # (the trailing silence left out of the take)
+    c = res.counters
+    assert c["late"] == 0 and c["used"] == 73 and len(res.take.time) == 73
+
+
 @pytest.mark.parametrize("listened", [True, False])
 def test_no_silence_while_datagrams_wait_to_be_read(take, synth, listened):
     """A receiver that cannot read for a while (a busy machine; here a hold of

@@ -204,8 +204,10 @@ class LiveSession(StreamCalibration):
             self._work(None)
 
     def tick(self, now: float) -> None:
-        """Nothing has come: after ``gap_s`` (then every frame) a row of lost devices."""
+        """Nothing has come: after ``gap_s`` (then every frame) a row of lost devices
+        (the samples put meanwhile read first: they may be older than now)."""
         with self._lock:
+            self._drain()
             self._silence(now)
             self._work(None)
 
