@@ -507,6 +507,35 @@ def test_the_fast_osc_reader_and_writer_are_python_oscs(take):
     assert fast > 200  # (the fast path was taken, not only python-osc's)
 
 
+def test_a_layout_seen_before_is_read_as_python_osc_reads_it(take, monkeypatch):
+    """A sender's datagrams of one layout are read through that layout's
+    template (one ``struct`` call for the numbers) and give what
+    ``python-osc`` gives; a datagram of the same size whose strings differ (a
+    serial, an address, a bundle size) is not taken for that layout; the
+    layouts kept stay bounded under a stream of odd datagrams."""
+    monkeypatch.setattr(O, "_TEMPLATES", {})
+    rng = random.Random(11)
+    hits = 0
+    for fmt in ("vmc", "osc"):
+        for i in range(0, 200, 3):
+            meta = {"devices": "joints", "height_m": "1.7"} if i % 2 else None
+            d = P.sample_datagrams(fmt, i, i / 72.0, take.positions[i], take.quats[i], meta, True,
+                                   ("devices", "height_m"))[0]
+            known = any(t.read(d) is not None for t in O._TEMPLATES.get(len(d), ()))
+            hits += known
+            assert repr(O.osc_messages(d)) == repr(O._python_osc_messages(d))
+            # one byte of a string changed (same size): never read as the layout
+            j = d.find(b"DP_Head" if fmt == "vmc" else b"head")
+            odd = d[:j] + b"X" + d[j + 1:]
+            assert repr(O.osc_messages(odd)) == repr(O._python_osc_messages(odd))
+            assert O.osc_messages(odd) != O.osc_messages(d)
+    assert hits > 120  # (the templates were used)
+    for _ in range(3000):  # odd datagrams: a bounded number of layouts kept
+        m = P.OscMessage("/x" * rng.randrange(1, 40), *[("f", 1.0)] * rng.randrange(0, 30))
+        O.osc_messages(m.dgram)
+    assert len(O._TEMPLATES) <= O._MAX_SIZES and all(len(v) <= O._PER_SIZE for v in O._TEMPLATES.values())
+
+
 def test_bundle_with_a_negative_element_size_is_malformed_not_a_stall():
     """python-osc 1.10.2 loops for ever on a bundle element of size -4; the
     framing is checked first."""
