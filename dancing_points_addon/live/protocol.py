@@ -97,7 +97,8 @@ def _pose(p, q) -> tuple:
     n = math.hypot(*q)
     if not QUAT_NORM_RANGE[0] <= n <= QUAT_NORM_RANGE[1]:
         raise BadMessage(f"quaternion norm {n:.3g} not within [0.5, 2]")
-    return np.array(p, dtype=np.float64), np.array(q, dtype=np.float64) / n
+    w, x, y, z = q  # (divided as numpy would divide the array: the same doubles, one array made)
+    return np.array(p, dtype=np.float64), np.array((w / n, x / n, y / n, z / n), dtype=np.float64)
 
 
 def unity_to_motion(p, q_xyzw) -> tuple:
@@ -185,6 +186,9 @@ class HandAssignment:
             self.sides[s0], self.sides[s1] = (2, 1) if r0 > r1 else (1, 2)
 
 
+_VMC_POSES = frozenset((VMC_HMD, VMC_CON, VMC_TRA))
+
+
 class VmcDecoder:
     """VMC messages -> :class:`Packet` (see the module docstring)."""
 
@@ -201,13 +205,12 @@ class VmcDecoder:
         hands = []  # (kind, serial, p, q) of this packet's controllers and trackers
         for address, args in messages:
             try:
-                if address in (VMC_HMD, VMC_CON, VMC_TRA):
+                if address in _VMC_POSES:
                     pk.known += 1
                     if len(args) < 8 or not isinstance(args[0], str):
                         raise BadMessage(f"{address} needs a serial and 7 numbers")
-                    nums = _numbers(args[1:8])
-                    up, uq = unity_to_motion(nums[:3], nums[3:])
-                    p, q = _pose(up, uq)
+                    x, y, z, qx, qy, qz, qw = _numbers(args[1:8])
+                    p, q = _pose((x, y, -z), (qw, -qx, -qy, qz))  # (unity_to_motion)
                     serial = args[0]
                     if address == VMC_HMD:
                         if self.head_serial is None:
