@@ -138,11 +138,14 @@ def _fast_messages(d: bytes, out: list, start: int, end: int, depth: int = 0, nu
     them) read with ``struct``, as ``python-osc`` reads them; anything else
     raises :class:`_Unusual` (then ``python-osc`` reads it). ``d[start:end]``:
     the packet (a bundle's element is read in place). ``numbers``: a list to
-    which each run of numeric arguments is added as ``(offset, struct, index
-    of its first argument)``, per message, in order."""
+    which each message adds the list of its runs of numeric arguments,
+    ``(offset, struct, index of its first argument)``, and each bundle the
+    offset of its time tag (an int: ignored by the reader), in order."""
     if d.startswith(BUNDLE, start, end):
         if depth > MAX_BUNDLE_DEPTH or end - start < 16:
             raise _Unusual
+        if numbers is not None:
+            numbers.append(start + 8)
         i = start + 16
         while i < end:
             if i + 4 > end:
@@ -174,8 +177,9 @@ class _Template:
 
     def __init__(self, d: bytes, messages: list, runs: list):
         spans = []  # (offset, end) of each run of numbers, in the datagram's order
+        tags = [(r, r + 8) for r in runs if r.__class__ is int]  # the time tags: any bytes (the reader ignores them)
         fmt, plan, n, pos = ">", [], 0, None
-        for (address, args), msg_runs in zip(messages, runs):
+        for (address, args), msg_runs in zip(messages, (r for r in runs if r.__class__ is list)):
             pieces, k = [], 0  # the arguments: a string as it is, a run as (first, end) in the numbers
             for offset, step, first in msg_runs:
                 pieces.extend(args[k:first])
@@ -190,7 +194,7 @@ class _Template:
             pieces.extend(args[k:])
             plan.append((address, tuple(pieces)))
         self.size = len(d)
-        edges = [0] + [e for span in spans for e in span] + [len(d)]
+        edges = [0] + [e for span in sorted(spans + tags) for e in span] + [len(d)]
         self.consts = tuple((a, b) for a, b in zip(edges[0::2], edges[1::2]) if b > a)
         self.const_bytes = b"".join(d[a:b] for a, b in self.consts)
         self.numbers = (spans[0][0], struct.Struct(fmt)) if spans else None
