@@ -111,7 +111,7 @@ def _plan(tags: str) -> tuple:
     return plan
 
 
-def _fast_message(d: bytes, start: int, end: int, numbers=None) -> tuple:
+def _fast_message(d: bytes, start: int, end: int, runs=None) -> tuple:
     address, i = _fast_string(d, start, start, end)
     if i == end:
         return address, []
@@ -126,26 +126,26 @@ def _fast_message(d: bytes, start: int, end: int, numbers=None) -> tuple:
         else:
             if i + step.size > end:
                 raise _Unusual
-            if numbers is not None:  # where the numbers lie, for a template (_Template)
-                numbers.append((i, step, len(args)))
+            if runs is not None:  # where the numbers lie, for a template (_Template)
+                runs.append((i, step, len(args)))
             args.extend(step.unpack_from(d, i))
             i += step.size
     return address, args
 
 
-def _fast_messages(d: bytes, out: list, start: int, end: int, depth: int = 0, numbers=None) -> None:
+def _fast_messages(d: bytes, out: list, start: int, end: int, depth: int = 0, layout=None) -> None:
     """The common datagrams (messages of ``i f d s`` arguments, bundles of
     them) read with ``struct``, as ``python-osc`` reads them; anything else
     raises :class:`_Unusual` (then ``python-osc`` reads it). ``d[start:end]``:
-    the packet (a bundle's element is read in place). ``numbers``: a list to
-    which each message adds the list of its runs of numeric arguments,
-    ``(offset, struct, index of its first argument)``, and each bundle the
-    offset of its time tag (an int: ignored by the reader), in order."""
+    the packet (a bundle's element is read in place). ``layout``: two lists,
+    ``(tags, runs)``, to which each bundle adds the offset of its time tag
+    (which the reader ignores) and each message the list of its runs of
+    numeric arguments, ``(offset, struct, index of its first argument)``."""
     if d.startswith(BUNDLE, start, end):
         if depth > MAX_BUNDLE_DEPTH or end - start < 16:
             raise _Unusual
-        if numbers is not None:
-            numbers.append(start + 8)
+        if layout is not None:
+            layout[0].append(start + 8)
         i = start + 16
         while i < end:
             if i + 4 > end:
@@ -154,13 +154,13 @@ def _fast_messages(d: bytes, out: list, start: int, end: int, depth: int = 0, nu
             i += 4
             if size <= 0 or i + size > end:
                 raise _Unusual
-            _fast_messages(d, out, i, i + size, depth + 1, numbers)
+            _fast_messages(d, out, i, i + size, depth + 1, layout)
             i += size
     elif d[start:start + 1] == b"/":
-        runs = [] if numbers is not None else None
+        runs = None if layout is None else []
         out.append(_fast_message(d, start, end, runs))
-        if numbers is not None:
-            numbers.append(runs)
+        if layout is not None:
+            layout[1].append(runs)
     else:
         raise _Unusual
 
@@ -175,11 +175,10 @@ class _Template:
 
     __slots__ = ("size", "consts", "const_bytes", "numbers", "plan")
 
-    def __init__(self, d: bytes, messages: list, runs: list):
+    def __init__(self, d: bytes, messages: list, tags: list, runs: list):
         spans = []  # (offset, end) of each run of numbers, in the datagram's order
-        tags = [(r, r + 8) for r in runs if r.__class__ is int]  # the time tags: any bytes (the reader ignores them)
         fmt, plan, n, pos = ">", [], 0, None
-        for (address, args), msg_runs in zip(messages, (r for r in runs if r.__class__ is list)):
+        for (address, args), msg_runs in zip(messages, runs):
             pieces, k = [], 0  # the arguments: a string as it is, a run as (first, end) in the numbers
             for offset, step, first in msg_runs:
                 pieces.extend(args[k:first])
@@ -194,7 +193,8 @@ class _Template:
             pieces.extend(args[k:])
             plan.append((address, tuple(pieces)))
         self.size = len(d)
-        edges = [0] + [e for span in sorted(spans + tags) for e in span] + [len(d)]
+        skipped = sorted(spans + [(t, t + 8) for t in tags])  # the numbers, and the time tags: any bytes
+        edges = [0] + [e for span in skipped for e in span] + [len(d)]
         self.consts = tuple((a, b) for a, b in zip(edges[0::2], edges[1::2]) if b > a)
         self.const_bytes = b"".join(d[a:b] for a, b in self.consts)
         self.numbers = (spans[0][0], struct.Struct(fmt)) if spans else None
@@ -232,14 +232,14 @@ def osc_messages(dgram: bytes) -> list:
         got = tpl.read(dgram)
         if got is not None:
             return got
-    out, runs = [], []
+    out, tags, runs = [], [], []
     try:
-        _fast_messages(dgram, out, 0, len(dgram), numbers=runs)
+        _fast_messages(dgram, out, 0, len(dgram), layout=(tags, runs))
     except (_Unusual, struct.error, RecursionError):
         return _python_osc_messages(dgram)
     seen = _TEMPLATES.get(len(dgram))
     if seen is not None or len(_TEMPLATES) < _MAX_SIZES:  # (a new tuple: another receiver's thread may read it)
-        _TEMPLATES[len(dgram)] = (_Template(dgram, out, runs),) + (seen or ())[:_PER_SIZE - 1]
+        _TEMPLATES[len(dgram)] = (_Template(dgram, out, tags, runs),) + (seen or ())[:_PER_SIZE - 1]
     return out
 
 

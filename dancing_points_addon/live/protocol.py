@@ -209,8 +209,8 @@ class VmcDecoder:
                     pk.known += 1
                     if len(args) < 8 or not isinstance(args[0], str):
                         raise BadMessage(f"{address} needs a serial and 7 numbers")
-                    x, y, z, qx, qy, qz, qw = _numbers(args[1:8])
-                    p, q = _pose((x, y, -z), (qw, -qx, -qy, qz))  # (unity_to_motion)
+                    nums = _numbers(args[1:8])
+                    p, q = _pose(*unity_to_motion(nums[:3], nums[3:]))
                     serial = args[0]
                     if address == VMC_HMD:
                         if self.head_serial is None:
