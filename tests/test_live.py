@@ -841,15 +841,15 @@ _LATENCY = re.compile(r"median ([\d.]+) ms, 99th percentile ([\d.]+) ms; after t
 
 
 @pytest.mark.parametrize("fmt,drop,extra", [("vmc", 0.0, ()), ("osc", 0.0, ("--messages",)),
-                                            ("vmc", 0.05, ()), ("osc", 0.05, ())])
+                                            ("vmc", 0.1, ()), ("osc", 0.1, ())])
 def test_stream_and_live_processes(tmp_path, fmt, drop, extra):
-    """``stream`` (the sample take at 72 Hz for 10 s) and ``live`` as separate
+    """``stream`` (the sample take at 72 Hz for 5 s) and ``live`` as separate
     processes on 127.0.0.1: every packet sent is received and accounted for,
     the deliberately dropped ones are the numbered samples found lost, and the
     duet ``live`` wrote is ``synthesize``'s of the take it wrote."""
     out = tmp_path / "live.npz"
     live, port = _start_live("--format", fmt, "-o", out)
-    sender, stdout, _ = _stream_into(live, port, SAMPLE, "--format", fmt, "--rate", "72", "--duration", "10",
+    sender, stdout, _ = _stream_into(live, port, SAMPLE, "--format", fmt, "--rate", "72", "--duration", "5",
                                      "--drop", drop, *extra)
     sent, samples, dropped = map(int, _SENT.search(sender.stdout).groups())
     received, used, late, malformed, ignored, others, lost = map(int, _RECEIVED.search(stdout).groups())
@@ -870,7 +870,7 @@ def test_stream_and_live_processes(tmp_path, fmt, drop, extra):
     csv = out.with_suffix(".csv")
     tk = read_take(csv)
     assert tk.meta["devices"] == "joints" and tk.meta["role"] == "leader"
-    assert 9.0 < tk.time[-1] < 11.5
+    assert 4.0 < tk.time[-1] < 6.5
     worst, b = _offline_difference(out, tmp_path)
     print(f"live duet vs synthesize of its take: {b['leader_positions'].shape[0]} frames, max difference {worst:g}")
     assert worst <= TOL
