@@ -154,20 +154,11 @@ def build_rig(motion, naming, pose="T", roll_seed=None, name="Rig", frame_start=
     bones = rig_bones(naming)
     J0, A = spec_rest(motion.bone_vectors, pose)
     rng = np.random.default_rng(roll_seed) if roll_seed is not None else None
-    arm_data = bpy.data.armatures.new(name)
-    obj = bpy.data.objects.new(name, arm_data)
-    bpy.context.scene.collection.objects.link(obj)
-    bpy.context.view_layer.objects.active = obj
-    bpy.ops.object.mode_set(mode='EDIT')
-    for bname, parent, head, tail, _rot in bones:
-        eb = arm_data.edit_bones.new(bname)
-        eb.head = C @ _points(J0, head)
-        eb.tail = C @ _points(J0, tail)
-        if rng is not None:
-            eb.roll = float(rng.uniform(-np.pi, np.pi))
-        if parent is not None:
-            eb.parent = arm_data.edit_bones[parent]
-    bpy.ops.object.mode_set(mode='OBJECT')
+    rolls = [float(rng.uniform(-np.pi, np.pi)) if rng is not None else 0.0 for _ in bones]
+    obj = bsu.build_armature(name, [(bname, parent, C @ _points(J0, head), C @ _points(J0, tail), roll)
+                                    for (bname, parent, head, tail, _rot), roll in zip(bones, rolls)],
+                             body=False, connect=lambda bone: False)
+    arm_data = obj.data
     # Posed armature-space matrices of every bone, then their pose channels.
     T = motion.n_frames
     Jt = np.asarray(motion.positions, dtype=np.float64)
