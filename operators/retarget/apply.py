@@ -163,11 +163,14 @@ def control_basis(obj, W, frames, max_passes=12, tol=1e-5):
         if pb is not None and p in pb.keys():
             pb[p] = rgf.FK_VALUE
     vl = bpy.context.view_layer
+    wm = bpy.context.window_manager  # the solve is Blender's evaluation, some passes a frame: show its progress
     out = np.empty((len(frames), len(ctls), 4, 4))
     worst, passes = 0.0, 0
+    wm.progress_begin(0, len(frames))
     try:
         vl.update()
         for t in range(len(frames)):
+            wm.progress_update(t)
             goal = [Matrix(m.tolist()) for m in targets[t]]
             for k, j in direct.items():
                 pbs[k].matrix_basis = Matrix((rel[k] @ np.linalg.inv(targets[t, j]) @ targets[t, k]).tolist())
@@ -183,6 +186,7 @@ def control_basis(obj, W, frames, max_passes=12, tol=1e-5):
             worst = max(worst, err)
             out[t] = [mat(pb.matrix_basis) for pb in pbs]
     finally:
+        wm.progress_end()
         restore(obj, snap)
     control_basis.passes = passes / max(len(frames), 1)
     return ctls, out, worst
