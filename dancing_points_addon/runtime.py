@@ -284,7 +284,7 @@ class Synthesizer:
     def _frame(self, positions, quats, valid):
         """:meth:`step` on §2 points above a floor at y = 0."""
         read = self._read(positions, quats, valid)
-        return self._advance(read, self._input_nets(read.x))
+        return self._advance(read, self._input_nets(read.x, read.root[None]))
 
     def _read(self, positions, quats, valid) -> _Read:
         """The input side of a frame: the devices cleaned (:class:`~.input_cleaning.InputCleaner`), at
@@ -318,16 +318,21 @@ class Synthesizer:
         self._reads += 1
         return _Read(tracked_s, root, s, F.mapping_input(self.hist_roots[None], self.hist_tracked[None]), devices)
 
-    def _input_nets(self, x) -> dict:
-        """The networks that read the mapping's input only, on ``x (B, MAP_IN)``:
-        the mapping (her roots the placement network's), and as the options
-        need them the contacts, the pose anchor and the hip heading (each
-        ``(B, …)``; a batch gives each row the bits a batch of one does)."""
+    def _input_nets(self, x, roots) -> dict:
+        """The networks that read the mapping's input only, on ``x (B, MAP_IN)``
+        of frames whose tracked roots are ``roots (B, 4)``: the mapping (her
+        roots the placement network's) and its decoding (per dancer, world
+        roots and tracked points: ``tracked_roots``, ``tracked_points``,
+        ``partner_roots``, ``partner_points``), and as the options need them
+        the contacts, the pose anchor and the hip heading (each ``(B, …)``; a
+        batch gives each row the bits a batch of one does)."""
         nets = self.nets
         y = nets["mapping"](x)
         if self._placement_net:  # her predicted roots from the placement network
             y = F.splice_follower_roots(y, nets["placement"](x))
-        out = {"mapping": y}
+        (t_roots, t_tr), (p_roots, p_tr) = F.decode_mapping(y, roots)
+        out = {"mapping": y, "tracked_roots": t_roots, "tracked_points": t_tr, "partner_roots": p_roots,
+               "partner_points": p_tr}
         if self._net_steps:
             out["contacts"] = nets["contacts"](x)
         if self._anchor > 0.0:
@@ -339,7 +344,7 @@ class Synthesizer:
     def _advance(self, read: _Read, outs: dict):
         """The rest of a frame (:meth:`_read` gave its input, ``outs`` the
         networks on it, rows of one frame): both dancers one step on."""
-        root, s, tracked_s, y = read.root, read.scale, read.tracked, outs["mapping"]
+        root, s, tracked_s = read.root, read.scale, read.tracked
         if read.devices is not None:
             self._tracked_pose.devices = read.devices
         if self.t == 0:
@@ -350,8 +355,8 @@ class Synthesizer:
             if b > 0.0 and self._contact_p is not None:
                 p = b * self._contact_p + (1.0 - b) * p
             self._contact_p = p
-        (t_roots, t_tr), (p_roots, p_tr) = F.decode_mapping(y, root[None])
-        t_roots, t_tr, p_roots, p_tr = t_roots[0], t_tr[0], p_roots[0], p_tr[0]
+        t_roots, t_tr = outs["tracked_roots"][0], outs["tracked_points"][0]
+        p_roots, p_tr = outs["partner_roots"][0], outs["partner_points"][0]
         self.prev_tracked_pred = (t_roots[0], t_tr[0])
         if self.record_predictions:  # the mapping's output (her roots the placement network's), world, output scale
             pred = to_world(np.stack([t_tr, p_tr]), np.stack([t_roots, p_roots]))
@@ -473,7 +478,7 @@ class Synthesizer:
             while end < min(t + READ_AHEAD, T) and valid[end].all():
                 end += 1
             reads = [self._read(tk.positions[k], tk.quats[k], valid[k]) for k in range(t, end)]
-            outs = self._input_nets(np.concatenate([r.x for r in reads]))
+            outs = self._input_nets(np.concatenate([r.x for r in reads]), np.array([r.root for r in reads]))
             for i, read in enumerate(reads):
                 a, b = self._advance(read, {k: v[i:i + 1] for k, v in outs.items()})
                 frames.put(t, a, b, self.last_prediction, self.planted())
