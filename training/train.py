@@ -142,6 +142,8 @@ def main(argv=None):
     ap.add_argument("--map-hidden", type=int, default=None, help="mapping hidden units (default: the config's)")
     ap.add_argument("--map-wd", type=float, default=None, help="mapping AdamW weight decay (default 1e-4)")
     ap.add_argument("--track-epochs", type=int, default=None)
+    ap.add_argument("--track-hidden", type=int, default=None,
+                    help="trackers' hidden units (default: the config's)")
     ap.add_argument("--pose-noise", type=float, default=None,
                     help="trackers (both dancers): perturb the current-pose input with Gaussian noise of a "
                          "standard deviation up to this many POSE_NOISE_UNITS (default: the config's, per dancer)")
@@ -184,6 +186,8 @@ def main(argv=None):
     cfg = dict(CONFIGS[args.config])
     if args.pose_noise is not None:
         cfg["pose_noise"] = args.pose_noise
+    if args.track_hidden is not None:
+        cfg["track_hidden"] = args.track_hidden
     if args.tracker_bodies is not None:
         bodies = tuple(b for b in args.tracker_bodies.split(",") if b)
         if not bodies or set(bodies) - {"leader", "follower", "solo"}:
