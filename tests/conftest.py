@@ -2,6 +2,7 @@ import inspect
 import os
 import pathlib
 import re
+import signal
 import sys
 
 import pytest
@@ -16,6 +17,12 @@ MODELS = os.environ.get("DP_MODEL_DIR") or str(ROOT / "models")
 
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+# A suite started in the background of a non-interactive shell (``pytest … &``) inherits Ctrl-C
+# ignored, and so would every process it starts: the tests that stop ``live`` or the command line
+# with SIGINT need it delivered.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture
