@@ -321,8 +321,8 @@ class Synthesizer:
     def _input_nets(self, x, roots) -> dict:
         """The networks that read the mapping's input only, on ``x (B, MAP_IN)``
         of frames whose tracked roots are ``roots (B, 4)``: the mapping (her
-        roots the placement network's) and its decoding (per dancer, world
-        roots and tracked points: ``tracked_roots``, ``tracked_points``,
+        roots the placement network's), decoded per dancer into world roots
+        and tracked points (``tracked_roots``, ``tracked_points``,
         ``partner_roots``, ``partner_points``), and as the options need them
         the contacts, the pose anchor and the hip heading (each ``(B, …)``; a
         batch gives each row the bits a batch of one does)."""
@@ -331,8 +331,7 @@ class Synthesizer:
         if self._placement_net:  # her predicted roots from the placement network
             y = F.splice_follower_roots(y, nets["placement"](x))
         (t_roots, t_tr), (p_roots, p_tr) = F.decode_mapping(y, roots)
-        out = {"mapping": y, "tracked_roots": t_roots, "tracked_points": t_tr, "partner_roots": p_roots,
-               "partner_points": p_tr}
+        out = {"tracked_roots": t_roots, "tracked_points": t_tr, "partner_roots": p_roots, "partner_points": p_tr}
         if self._net_steps:
             out["contacts"] = nets["contacts"](x)
         if self._anchor > 0.0:
