@@ -35,17 +35,19 @@ are here.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from math import atan2, cos, hypot, sin
+from math import atan2, cos, hypot, sin, sqrt
 
 import numpy as np
 
 from .features import FPS
 from .foot_lock import FootLockOptions
 from .option_checks import check_kinds, check_range
-from .representation import blend_root, compose_floats, relative_rows, segments_gap
+from .representation import blend_root, compose_floats, relative_rows
+from .scalar_kernels import segments_gap_s
 from .skeleton import JOINT_INDEX
 
 PELVIS, NECK = JOINT_INDEX["root"], JOINT_INDEX["lowerneck"]
+_TORSO = slice(PELVIS, NECK + 1, NECK - PELVIS)  # the rows (pelvis, lower neck): a slice costs less than a list
 
 
 def _compose(ref, rel):
@@ -349,15 +351,17 @@ class Separation:
         ``min_distance`` from the leader's (0, 0 when it already is)."""
         if self.min_distance <= 0:
             return 0.0, 0.0
-        diff = segments_gap(follower_pos[PELVIS], follower_pos[NECK], leader_pos[PELVIS], leader_pos[NECK])
-        dist = float(np.sqrt(diff @ diff))
+        (f0, f1), (l0, l1) = follower_pos[_TORSO].tolist(), leader_pos[_TORSO].tolist()
+        diff = segments_gap_s(f0, f1, l0, l1)  # (on floats: numpy's per-call cost would dominate)
+        d = np.array(diff)
+        dist = sqrt(float(d @ d))  # (numpy's dot product, whose rounding the plain sum need not share)
         if dist >= self.min_distance:
             return 0.0, 0.0
-        hx, hz = float(diff[0]), float(diff[2])
+        hx, hz = diff[0], diff[2]
         n = hypot(hx, hz)
         if n < 1e-6:  # axes crossing: away from the leader's pelvis
-            hx = float(follower_pos[PELVIS, 0] - leader_pos[PELVIS, 0])
-            hz = float(follower_pos[PELVIS, 2] - leader_pos[PELVIS, 2])
+            hx = f0[0] - l0[0]
+            hz = f0[2] - l0[2]
             n = hypot(hx, hz)
             if n < 1e-6:
                 hx, hz, n = 0.0, 1.0, 1.0

@@ -190,3 +190,30 @@ def angle_s(D):
     c = 0.5 * (D[0] + D[4] + D[8] - 1.0)
     s = 0.5 * sqrt((D[7] - D[5]) ** 2 + (D[2] - D[6]) ** 2 + (D[3] - D[1]) ** 2)
     return atan2(s, c)
+
+
+def clip01(x):
+    """``np.clip(x, 0.0, 1.0)`` of a float, to the bit (NaN kept, −0.0 to 0.0)."""
+    if x > 0.0:
+        return x if x < 1.0 else 1.0
+    return x if x != x else 0.0
+
+
+def segments_gap_s(p0, p1, q0, q1):
+    """:func:`.representation.segments_gap` of one pair of segments on
+    3-sequences, as a 3-tuple: the same products, sums (each dot product
+    summed x, y, then z, as numpy sums three numbers) and clamps."""
+    ux, uy, uz = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
+    vx, vy, vz = q1[0] - q0[0], q1[1] - q0[1], q1[2] - q0[2]
+    wx, wy, wz = p0[0] - q0[0], p0[1] - q0[1], p0[2] - q0[2]
+    A = ux * ux + uy * uy + uz * uz
+    B = ux * vx + uy * vy + uz * vz
+    C = vx * vx + vy * vy + vz * vz
+    D = ux * wx + uy * wy + uz * wz
+    E = vx * wx + vy * wy + vz * wz
+    den = A * C - B * B
+    s = clip01((B * E - C * D) / max(den, 1e-12)) if den > 1e-12 else 0.0
+    t = clip01((B * s + E) / max(C, 1e-12))
+    s = clip01((B * t - D) / max(A, 1e-12))
+    return ((p0[0] + s * ux) - (q0[0] + t * vx), (p0[1] + s * uy) - (q0[1] + t * vy),
+            (p0[2] + s * uz) - (q0[2] + t * vz))

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from dancing_points_addon.ik import rotation_between
+from dancing_points_addon.representation import segments_gap
 from dancing_points_addon.rotations import quat_to_matrix
-from dancing_points_addon.scalar_kernels import I3, rot_between_s
+from dancing_points_addon.scalar_kernels import I3, clip01, rot_between_s, segments_gap_s
 
 
 def _pairs():
@@ -45,3 +46,19 @@ def test_quat_to_matrix_one_and_many_agree_bit_for_bit():
     np.testing.assert_allclose(np.linalg.det(many), 1.0, atol=1e-12)
     # a zero quaternion is no rotation: NaN, on both paths, without an exception
     assert np.isnan(quat_to_matrix(np.zeros(4))).all() and np.isnan(quat_to_matrix(np.zeros((2, 4)))).all()
+
+
+def test_segments_gap_one_pair_is_the_batch_form_bit_for_bit():
+    rng = np.random.default_rng(11)
+    p0, p1, q0, q1 = rng.normal(size=(4, 500, 3))
+    p1[:20] = p0[:20] + 0.7 * (q1[:20] - q0[:20])  # parallel segments
+    p1[20:30] = p0[20:30]  # a collapsed segment
+    q1[25:35] = q0[25:35]
+    p0[40], p1[40] = q0[40], q1[40]  # the same segment twice
+    batch = segments_gap(p0, p1, q0, q1)
+    one = np.array([segments_gap_s(*x) for x in zip(p0.tolist(), p1.tolist(), q0.tolist(), q1.tolist())])
+    assert np.array_equal(batch, one)
+    for x in (-2.0, -0.0, 0.0, 1e-300, 0.5, 1.0, 3.0, np.inf, -np.inf):
+        assert np.array_equal(np.float64(clip01(x)), np.clip(x, 0.0, 1.0))
+        assert np.signbit(clip01(x)) == np.signbit(np.clip(x, 0.0, 1.0))
+    assert np.isnan(clip01(np.nan))
