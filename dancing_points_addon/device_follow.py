@@ -43,7 +43,7 @@ import numpy as np
 from .option_checks import check_range
 from .scalar_kernels import mat_mul, mat_vec, rot_between_s, transpose_s, two_bone_s
 from .representation import DEVICE_FROM_HEAD
-from .skeleton import JOINT_INDEX
+from .skeleton import JOINT_INDEX, joint_rows
 
 
 
@@ -146,10 +146,11 @@ class DeviceFollow:
         for s in "lr":
             e = bv[_J[s + "wrist"]]
             self.sides.append({"clavicle": _J[s + "clavicle"], "humerus": _J[s + "humerus"],
-                               "forearm": [_J[s + n] for n in ("radius", "wrist", "hand", "fingers", "thumb")],
+                               "forearm": joint_rows(_J[s + n] for n in ("radius", "wrist", "hand", "fingers",
+                                                                          "thumb")),
                                "radius": _J[s + "radius"], "wrist": _J[s + "wrist"], "hand": _J[s + "hand"],
-                               "turned": [_J[s + n] for n in ("wrist", "hand", "fingers", "thumb")],
-                               "flexed": [_J[s + "hand"], _J[s + "fingers"]],
+                               "turned": joint_rows(_J[s + n] for n in ("wrist", "hand", "fingers", "thumb")),
+                               "flexed": joint_rows((_J[s + "hand"], _J[s + "fingers"])),
                                "axis": tuple((e / np.linalg.norm(e)).tolist())})
         if hand_flex is not None and hand_bone == "hand":
             for side, flex in zip(self.sides, hand_flex):  # the forearm end from the hand: R_w = R_h · flexᵀ

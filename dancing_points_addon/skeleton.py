@@ -46,6 +46,19 @@ WRISTS = (JOINT_INDEX["lwrist"], JOINT_INDEX["rwrist"])
 # The lower body: hip joints, thighs, shins, feet, toes (the follower's pose anchor).
 LOWER_BODY = np.arange(JOINT_INDEX["lhipjoint"], JOINT_INDEX["rtoes"] + 1)
 
+
+
+def joint_rows(indices):
+    """Joint indices as an index into an array's joint axis: a slice (a view,
+    cheaper per frame than an index list) where they are evenly spaced and
+    ascending, else the list."""
+    idx = [int(i) for i in indices]
+    step = idx[1] - idx[0] if len(idx) > 1 else 1
+    if step > 0 and idx == list(range(idx[0], idx[-1] + 1, step)):
+        return slice(idx[0], idx[-1] + 1, step)
+    return idx
+
+
 # Left/right mirror: index permutation of the 31 joints.
 _UNSIDED = ("root", "lowerback", "lowerneck")
 MIRROR = np.array([
