@@ -12,6 +12,7 @@ follower's legs, pulled towards the pose anchor's, need it.
 """
 from __future__ import annotations
 
+from itertools import chain
 from math import atan2, cos, sin, sqrt
 
 import numpy as np
@@ -19,7 +20,7 @@ import numpy as np
 from .ik import two_bone_ik
 from .representation import dot3, norm, rot6d_to_matrix
 from .scalar_kernels import mat_mul, two_bone_s
-from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, PARENTS
+from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, PARENTS, joint_rows
 
 N = len(PARENTS)
 # ANCESTORS[n, k] = 1 when bone k lies on the chain from the root to bone n (k != root)
@@ -30,6 +31,7 @@ for _n in range(1, N):
         ANCESTORS[_n, _k] = 1.0
         _k = PARENTS[_k]
 _PAR = np.maximum(PARENTS, 0)
+_PARENT = PARENTS.tolist()
 _EYE_COL = np.eye(3)[:, :, None]
 
 
@@ -126,6 +128,7 @@ def recover_pose(positions: np.ndarray, rotations: np.ndarray, bone_vectors: np.
 # -43..43 degrees, foot -32..44), rounded out.
 LEG_CHAINS = (LOWER_BODY[:5].tolist(), LOWER_BODY[5:].tolist())  # hip joint, thigh, shin, foot, toes; left, right
 LEG_TWIST_DEG = (0.0, 45.0, 0.0, 40.0, 0.0)  # per bone of a chain, both sides
+_HIP_ROWS, _LEG_ROWS = joint_rows(HIPS), tuple(joint_rows(c) for c in LEG_CHAINS)  # (slices: views)
 
 
 class LegJoints:
@@ -143,6 +146,7 @@ class LegJoints:
         self.bone_vectors = bv
         self.rest_dir = (bv / np.maximum(norm(bv)[:, None], 1e-12)).tolist()
         self.limits = np.radians(LEG_TWIST_DEG).tolist()
+        self._hip_vectors = bv[list(HIPS)]
 
     def __call__(self, positions, rotations):
         return self.twist(*self.hips(positions, rotations))
@@ -155,10 +159,10 @@ class LegJoints:
 
     def hips(self, positions, rotations):
         """Each hip joint rigid with the pelvis, its leg moved with it."""
-        hips = list(HIPS)
-        shift = positions[0] + self.bone_vectors[hips] @ rotations[0].T - positions[hips]
-        positions[LEG_CHAINS[0]] += shift[0]
-        positions[LEG_CHAINS[1]] += shift[1]
+        hips, (left, right) = _HIP_ROWS, _LEG_ROWS
+        shift = positions[0] + self._hip_vectors @ rotations[0].T - positions[hips]
+        positions[left] += shift[0]
+        positions[right] += shift[1]
         rotations[hips] = rotations[0]
         return positions, rotations
 
@@ -170,14 +174,12 @@ def clamp_twist(rotations, rest_dir, left, right, limits):
     ``right``: two chains of bones, each bone after its parent. Per frame, on
     Python floats (a handful of 3 × 3 products: numpy's per-call cost would
     dominate)."""
-    bones = list(left) + list(right)
-    lims = list(limits) * 2
-    rows = rotations.reshape(-1, 9)
-    R = dict(zip(bones, rows[bones].tolist()))
-    changed = []
-    for b, lim in zip(bones, lims):
-        par = int(PARENTS[b])
-        P = R[par] if par in R else rows[par].tolist()
+    bones = (*left, *right)
+    top = max(bones) + 1
+    R = rotations.reshape(-1, 9)[:top].tolist()  # every bone up to the last (a parent comes before its child)
+    changed = False
+    for b, lim in zip(bones, (*limits, *limits)):
+        P = R[_PARENT[b]]
         C = R[b]
         # M = Pᵀ C: its trace and antisymmetric part give the relative rotation's quaternion
         tr = (P[0] * C[0] + P[1] * C[1] + P[2] * C[2] + P[3] * C[3] + P[4] * C[4] + P[5] * C[5]
@@ -202,9 +204,10 @@ def clamp_twist(rotations, rest_dir, left, right, limits):
                 C[3] * D[2] + C[4] * D[5] + C[5] * D[8],
                 C[6] * D[0] + C[7] * D[3] + C[8] * D[6], C[6] * D[1] + C[7] * D[4] + C[8] * D[7],
                 C[6] * D[2] + C[7] * D[5] + C[8] * D[8])
-        changed.append(b)
-    if changed:
-        rotations[changed] = np.reshape([R[b] for b in changed], (-1, 3, 3))
+        changed = True
+    if changed:  # the chains' rows back (unchanged ones as they were), through fromiter: cheaper than nested lists
+        lo = min(bones)
+        rotations[lo:top] = np.fromiter(chain.from_iterable(R[lo:top]), np.float64, 9 * (top - lo)).reshape(-1, 3, 3)
     return rotations
 
 
