@@ -1,6 +1,6 @@
 """One dancer's tracker state (:class:`DancerState`) and the step that
 advances the tracked dancer and the partner together: their trackers
-(:func:`tracker_step`), then their new roots and poses (:func:`settle_step`),
+(:func:`tracker_step`), then their new roots and world poses (:func:`settle_step`),
 with what keeps a pose state on its root on any length of take
 (:func:`limit_drift`, :func:`recentre`)."""
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 
 from . import features as F
 from .option_checks import check_range
-from .representation import (DEVICE_FROM_HEAD, pose_to_world, root_from_head, rot_to_local,
+from .representation import (DEVICE_FROM_HEAD, pose_to_local, pose_to_world, root_from_head, rot_to_local,
                              to_local)
 from .skeleton import FEET, HEAD_BONE, TRACKED
 
@@ -73,8 +73,8 @@ class DancerState:
 
     def set_pose(self, pos_world, rot_world, contacts):
         """Replace the state's pose (world) by a post-processed one."""
-        self.pose = F.pose_features(to_local(pos_world[None], self.root[None]),
-                                    rot_to_local(rot_world[None], self.root[None]), contacts[None])[0]
+        self.pose = F.pose_features(*pose_to_local(pos_world[None], rot_world[None], self.root[None]),
+                                    contacts[None])[0]
 
 
 def limit_drift(pos, limit):
@@ -123,11 +123,12 @@ def tracker_step(dancers, key_roots, key_tracked):
 def settle_step(dancers, roots, pos, rot, con, recentre_pose=(False, False)):
     """The step's end: each dancer's new ``root`` (as its caller chose it: the
     one the input shows, or its tracker's proposal placed; :func:`root_compose`
-    of the old root and the proposed change), its local pose kept on it
-    (``recentre_pose`` per dancer: True, re-centred on its own head; a
-    distance, the head's drift limited to it; False, as it is) and made its
-    state. Returns world positions ``(D, 31, 3)``, rotations ``(D, 31, 3, 3)``
-    and contacts ``(D, 4)``."""
+    of the old root and the proposed change) made its state, its local pose
+    kept on it (``recentre_pose`` per dancer: True, re-centred on its own head;
+    a distance, the head's drift limited to it; False, as it is). Returns world
+    positions ``(D, 31, 3)``, rotations ``(D, 31, 3, 3)`` and contacts
+    ``(D, 4)``; the caller makes the pose (after its own stages) the state's
+    (:meth:`DancerState.set_pose`)."""
     for d, root in zip(dancers, roots):
         d.root = root
     for i, on in enumerate(recentre_pose):
@@ -136,6 +137,4 @@ def settle_step(dancers, roots, pos, rot, con, recentre_pose=(False, False)):
         elif on is not False and on is not None:  # a distance: limit the drift to it
             pos[i:i + 1] = limit_drift(pos[i:i + 1], float(on))
     con = np.minimum(np.maximum(con, 0.0), 1.0)  # np.clip(con, 0, 1), cheaper
-    for d, pose in zip(dancers, F.pose_features(pos, rot, con)):
-        d.pose = pose
     return pose_to_world(pos, rot, np.array([d.root for d in dancers])) + (con,)

@@ -150,6 +150,12 @@ def pose_to_world(points: np.ndarray, rot: np.ndarray, root: np.ndarray):
     return points @ R.swapaxes(-1, -2) + _origin(root)[..., None, :], R[..., None, :, :] @ rot
 
 
+def pose_to_local(points: np.ndarray, rot: np.ndarray, root: np.ndarray):
+    """:func:`to_local` of ``points`` and :func:`rot_to_local` of ``rot``, sharing ``Ry(θ)``."""
+    R = root_rotation(root)
+    return (points - _origin(root)[..., None, :]) @ R, np.swapaxes(R, -1, -2)[..., None, :, :] @ rot
+
+
 def _on_rows(fn, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``fn`` (a ``*_rows`` function) on roots ``(…, 4)`` of broadcastable shapes."""
     shape = np.broadcast_shapes(a.shape, b.shape)
