@@ -93,9 +93,14 @@ def hip_heading(pos: np.ndarray) -> np.ndarray:
 
 
 def hip_frame(pos: np.ndarray) -> np.ndarray:
-    """Frames ``(T, 4)`` of poses ``(T, 31, 3)``: the pelvis's floor point and the
-    hip heading. A pose in its own hip frame is its shape with the placement
-    factored out (the follower's pose anchor and the pose metric use it)."""
+    """Frames ``(T, 4)`` of poses ``(T, 31, 3)`` (one pose ``(31, 3)``: its frame
+    ``(4,)``): the pelvis's floor point and the hip heading. A pose in its own
+    hip frame is its shape with the placement factored out (the follower's
+    pose anchor and the pose metric use it)."""
+    if pos.ndim == 2:  # one pose (per frame): numpy's functions on scalars, the same bits, fewer calls
+        (lx, _, lz), (rx, _, rz) = pos[HIPS[0]].tolist(), pos[HIPS[1]].tolist()
+        h = np.arctan2(-(lz - rz), lx - rx)
+        return np.array([float(pos[0, 0]), float(pos[0, 2]), float(np.cos(h)), float(np.sin(h))])
     h = hip_heading(pos)
     return np.stack([pos[:, 0, 0], pos[:, 0, 2], np.cos(h), np.sin(h)], axis=-1)
 

@@ -39,7 +39,7 @@ from .nets import contact_floor_levels, default_pose, load_nets, meta_json
 from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose)
 from .representation import hip_frame, root_compose, to_local, to_world
 from .rotations import quat_to_matrix
-from .skeleton import JOINT_INDEX, LOWER_BODY, TRACKED
+from .skeleton import JOINT_INDEX, LOWER_BODY, TRACKED, joint_rows
 
 CALIBRATION_FRAMES = 30  # live, without a calibration: the height is estimated over the first second
 DEFAULT_FLOOR_LEVELS = (0.07, 0.04, 0.07, 0.04)  # ankle, ball (m): without the contact network's levels
@@ -62,6 +62,7 @@ RECENTRE_POSE = {"leader": 0.05, "follower": True}
 # Frames :meth:`Synthesizer.synthesize` reads ahead of the frame loop (between
 # lost devices) to run the networks on the input once for all of them.
 READ_AHEAD = 256
+_LOWER_BODY = joint_rows(LOWER_BODY)  # (a slice: a view)
 
 
 class Synthesizer:
@@ -384,7 +385,7 @@ class Synthesizer:
         if self._anchor > 0.0:  # her lower body pulled towards the pose anchor's
             legs = outs["anchor"][0].astype(np.float64).reshape(-1, 3)
             pp = pos[1]
-            pp[LOWER_BODY] += self._anchor * (to_world(legs, hip_frame(pp[None])[0]) - pp[LOWER_BODY])
+            pp[_LOWER_BODY] += self._anchor * (to_world(legs, hip_frame(pp)) - pp[_LOWER_BODY])
         if self._separation is not None:
             dx, dz = self._separation.push(pos[0], pos[1])
             if dx or dz:  # her body and her root state move together

@@ -8,8 +8,8 @@ import pytest
 from dancing_points_addon import features as F
 from dancing_points_addon.formats.asf_amc import load_amc, parse_asf
 from training.dataset import (SALSA_TAKES, build_clips, mirror, n_train_frames, split_range)
-from dancing_points_addon.representation import (contact_labels, floor_levels, root_compose,
-                                                 root_from_motion, root_relative, rot_to_local,
+from dancing_points_addon.representation import (contact_labels, floor_levels, hip_frame, pose_to_local,
+                                                 root_compose, root_from_motion, root_relative, rot_to_local,
                                                  rot_to_world, to_local, to_world)
 from dancing_points_addon.skeleton import FEET, FOOT_NAMES, JOINT_NAMES, bone_lengths_from_positions
 
@@ -129,3 +129,14 @@ def test_mirror_is_a_valid_motion(salsa_dir):
     from dancing_points_addon.skeleton import PARENTS
     posed = p[:, 1:] - p[:, np.maximum(PARENTS, 0)][:, 1:]
     assert np.abs(np.einsum("tnab,nb->tna", r[:, 1:], vec[1:]) - posed).max() < 1e-9
+
+
+def test_one_pose_frames_are_the_batch_forms_bit_for_bit():
+    """The frame loop's one-pose paths (a hip frame, a pose into its root) give the batch forms' bits."""
+    rng = np.random.default_rng(3)
+    pos, rot = rng.normal(size=(300, 31, 3)), rng.normal(size=(300, 31, 3, 3))
+    assert np.array_equal(np.array([hip_frame(p) for p in pos]), hip_frame(pos))
+    roots = hip_frame(pos)
+    for p, r, root in zip(pos[:20, None], rot[:20, None], roots[:20, None]):
+        lp, lr = pose_to_local(p, r, root)
+        assert np.array_equal(lp, to_local(p, root)) and np.array_equal(lr, rot_to_local(r, root))
