@@ -50,11 +50,6 @@ PELVIS, NECK = JOINT_INDEX["root"], JOINT_INDEX["lowerneck"]
 _TORSO = slice(PELVIS, NECK + 1, NECK - PELVIS)  # the rows (pelvis, lower neck): a slice costs less than a list
 
 
-def _compose(ref, rel):
-    """:func:`~.representation.root_compose` of two roots given as lists."""
-    return compose_floats([float(v) for v in ref], [float(v) for v in rel])
-
-
 @dataclass(frozen=True)
 class PlacementOptions:
     """Where the partner stands and faces (:class:`Placement`) and how far the
@@ -212,6 +207,7 @@ class Placement:
     def __init__(self, options: PlacementOptions):
         self.o = options
         self._prev = None
+        self._plan = None  # :meth:`_key_plan`'s
         self.leashed = 0  # frames on which the leash engaged (reported, expected rare)
 
     def smooth(self, *arrays):
@@ -250,7 +246,7 @@ class Placement:
             n = max(hypot(c, s), 1e-9)
             c, s = c / n, s / n
         off = [dx, dz, c, s]
-        return off, _compose(leader_root.tolist(), off)
+        return off, compose_floats(leader_root.tolist(), off)
 
     def keys(self, root, f_roots, l_roots, leader_root, offset, key_index):
         """Key roots ``(K, 4)`` for the tracker at frames ``t − 1 + k``: the mapping's
@@ -258,20 +254,30 @@ class Placement:
         ``root`` (frame t − 1), eased towards the target placement.
         ``key_index``: per key k ≥ 2 the mapping index of frame t + k − 1 … (see
         runtime); key 1 uses the predicted first step."""
-        base = f_roots[0].tolist()
-        # one predicted step (frame t+1 -> t+2), taken for t-1 -> t and t -> t+1
-        step = relative_rows(np.array(base)[:, None], f_roots[1][:, None])[:, 0].tolist()
-        e1 = _compose(root, step)
-        e2 = _compose(e1, step)  # her frame t + 1 on the predicted path
-        ease = self.o.ease
-        out = [blend_root(e1, _compose(leader_root.tolist(), offset), ease)]
-        rels = relative_rows(np.repeat(np.array(base)[:, None], len(key_index), axis=1),
-                             np.ascontiguousarray(f_roots[key_index].T)).T.tolist()
-        for rel, idx in zip(rels, key_index):
-            k = idx + 2  # frames after t - 1
-            w = 1.0 - (1.0 - ease) ** k
-            out.append(blend_root(_compose(e2, rel), _compose(l_roots[min(idx, len(l_roots) - 1)].tolist(), offset), w))
+        weights, lead_index = self._key_plan(key_index, len(l_roots))
+        offset = [float(v) for v in offset]
+        # one predicted step (frame t+1 -> t+2), taken for t-1 -> t and t -> t+1, and
+        # the keys' predicted frames, all relative to the first predicted one (in one call)
+        step, *rels = relative_rows(f_roots[0][:, None], f_roots.take(self._steps, axis=0).T).T.tolist()
+        e1 = compose_floats([float(v) for v in root], step)
+        e2 = compose_floats(e1, step)  # her frame t + 1 on the predicted path
+        out = [blend_root(e1, compose_floats(leader_root.tolist(), offset), self.o.ease)]
+        for rel, lead, w in zip(rels, l_roots.take(lead_index, axis=0).tolist(), weights):
+            out.append(blend_root(compose_floats(e2, rel), compose_floats(lead, offset), w))
         return np.array(out)
+
+    def _key_plan(self, key_index, n_lead):
+        """Per ``key_index`` (kept while it is the same array): each key's ease
+        weight and his predicted frame's index; the predicted frames read
+        (:attr:`_steps`: the first step's, then the keys')."""
+        plan = self._plan
+        if plan is None or plan[0] is not key_index or plan[1] != n_lead:
+            ease = self.o.ease
+            weights = [1.0 - (1.0 - ease) ** (idx + 2) for idx in key_index]  # k = idx + 2: frames after t - 1
+            lead = [min(idx, n_lead - 1) for idx in key_index]
+            self._steps = np.concatenate([[1], key_index]).astype(np.intp)
+            plan = self._plan = (key_index, n_lead, weights, lead)
+        return plan[2], plan[3]
 
     def key_roots(self, root, prev_root, f_roots, l_roots, leader_root, offset, key_index):
         """Her tracker's key roots (:meth:`keys`; ``prev_root``, the prediction

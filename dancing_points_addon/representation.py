@@ -224,7 +224,9 @@ def compose_rows(ref: np.ndarray, rel: np.ndarray) -> np.ndarray:
 def blend_root(a, b, w: float) -> list:
     """Root ``w`` of the way from ``a`` to ``b`` (4 numbers each; position
     linear, heading normalised), as a list of plain floats."""
-    x, z, c, s = (p + w * (q - p) for p, q in zip(a, b))
+    a0, a1, a2, a3 = a
+    b0, b1, b2, b3 = b
+    x, z, c, s = a0 + w * (b0 - a0), a1 + w * (b1 - a1), a2 + w * (b2 - a2), a3 + w * (b3 - a3)
     n = max(sqrt(c * c + s * s), 1e-9)
     return [x, z, c / n, s / n]
 
