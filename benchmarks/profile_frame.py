@@ -44,7 +44,7 @@ def stages():
         (runtime, "tracker_step", "trackers' step"), (runtime, "settle_step", "settle"),
         (tracked_pose.TrackedPose, "__call__", "his last stage"),
         (partner_pose.PartnerPose, "__call__", "her last stage"),
-        (pose.PoseRecovery, "__call__", "pose recovery"),
+        (pose.Recoveries, "__call__", "pose recovery"),
         (pose.LegJoints, "twist", "her legs' twist"), (pose.LegJoints, "hips", "her hip joints"),
         (tracked_pose, "move_keeping_feet", "his head's reach"),
         (pose.FloorGuard, "__call__", "floor guard"),

@@ -88,32 +88,58 @@ class PoseRecovery:
         return out_pos, out_rot
 
     def _one(self, positions, rotations):
-        """:meth:`__call__` for one frame ``(31, 3)``, ``(31, 3, 3)``, the same
-        arithmetic on component-major rows ``(3, 31)`` (fewer, cheaper numpy
-        calls); the matrix products stay the same BLAS calls."""
-        p = np.ascontiguousarray(positions.T)
-        d = p - p.take(_PAR, axis=1)  # (take: cheaper than fancy indexing)
-        n = np.sqrt(dot3(d, d))
-        rot_dir = np.ascontiguousarray((rotations @ self._rest_col)[:, :, 0].T)
-        dirs = d / np.maximum(n, 1e-12)
-        if not n[1:].min() > 1e-6:  # a collapsed (or NaN) bone, rare: its rotation's direction
-            dirs = np.where(n > 1e-6, dirs, rot_dir)
-        dirs[:, 0] = 0.0
-        out_pos = positions[:1] + ANCESTORS @ (dirs * self.lengths).T
-        # _align(rot_dir, dirs): hv @ hw, both h = I − k·u uᵀ built at once from
-        # rows (u, k) = (w, ww) and (v, 2), then laid out C-ordered (30, 3, 3)
-        # like the batched code's, so the products take the same BLAS path.
-        u = np.empty((2, 3, N - 1))
-        w = np.add(rot_dir[:, 1:], dirs[:, 1:], out=u[0])
-        u[1] = dirs[:, 1:]
-        outer = u[:, :, None] * u[:, None, :]  # (2, 3, 3, 30): u_i u_j
-        outer[0] *= 2.0 / np.maximum(dot3(w, w), 1e-12)
-        outer[1] *= 2.0
-        hv_hw = np.empty((2, N - 1, 3, 3))
-        np.subtract(_EYE_COL, outer, out=hv_hw.transpose(0, 2, 3, 1))
-        out_rot = rotations.copy()
-        out_rot[1:] = hv_hw[1] @ hv_hw[0] @ rotations[1:]
-        return out_pos, out_rot
+        """:meth:`__call__` for one frame ``(31, 3)``, ``(31, 3, 3)``
+        (:func:`_recover_rows`)."""
+        p, r = _recover_rows(positions[None], rotations[None], self.lengths[None], self._rest_col[None])
+        return p[0], r[0]
+
+
+class Recoveries:
+    """Each skeleton's :class:`PoseRecovery` (``recoveries``) of one pose per
+    skeleton, all in one pass (the frame loop's two dancers): ``positions
+    (D, 31, 3)``, ``rotations (D, 31, 3, 3)`` in, each pose's bits as its own
+    skeleton's recovery gives them (:func:`_recover_rows`)."""
+
+    def __init__(self, recoveries):
+        self.recoveries = tuple(recoveries)
+        self.lengths = np.stack([r.lengths for r in self.recoveries])
+        self._rest_col = np.stack([r._rest_col for r in self.recoveries])
+
+    def __call__(self, positions: np.ndarray, rotations: np.ndarray):
+        return _recover_rows(positions, rotations, self.lengths, self._rest_col)
+
+
+def _recover_rows(positions, rotations, lengths, rest_col):
+    """:meth:`PoseRecovery.__call__` of poses ``(D, 31, 3)``, ``(D, 31, 3, 3)``,
+    each on its own skeleton (``lengths (D, 31)``, rest directions as columns
+    ``rest_col (D, 31, 3, 1)``): the same arithmetic on component-major rows
+    ``(D, 3, 31)`` (fewer, cheaper numpy calls); each pose's matrix products
+    stay the same BLAS calls on the same layouts, whatever ``D``."""
+    p = np.ascontiguousarray(positions.transpose(0, 2, 1))
+    d = p - p.take(_PAR, axis=2)  # (take: cheaper than fancy indexing)
+    dc = d.swapaxes(0, 1)  # (component first, for dot3)
+    n = np.sqrt(dot3(dc, dc))[:, None]
+    rot_dir = np.ascontiguousarray((rotations @ rest_col)[..., 0].transpose(0, 2, 1))
+    dirs = d / np.maximum(n, 1e-12)
+    if not n[:, :, 1:].min() > 1e-6:  # a collapsed (or NaN) bone, rare: its rotation's direction
+        dirs = np.where(n > 1e-6, dirs, rot_dir)
+    dirs[:, :, 0] = 0.0
+    out_pos = positions[:, :1] + ANCESTORS @ (dirs * lengths[:, None]).transpose(0, 2, 1)
+    # _align(rot_dir, dirs): hv @ hw, both h = I − k·u uᵀ built at once from
+    # rows (u, k) = (w, ww) and (v, 2), then laid out C-ordered (D, 30, 3, 3)
+    # like the batched code's, so the products take the same BLAS path.
+    u = np.empty((2, len(p), 3, N - 1))
+    w = np.add(rot_dir[:, :, 1:], dirs[:, :, 1:], out=u[0])
+    u[1] = dirs[:, :, 1:]
+    outer = u[:, :, :, None] * u[:, :, None, :]  # (2, D, 3, 3, 30): u_i u_j
+    wc = w.swapaxes(0, 1)
+    outer[0] *= (2.0 / np.maximum(dot3(wc, wc), 1e-12))[:, None, None]
+    outer[1] *= 2.0
+    hv_hw = np.empty((2, len(p), N - 1, 3, 3))
+    np.subtract(_EYE_COL, outer, out=hv_hw.transpose(0, 1, 3, 4, 2))
+    out_rot = rotations.copy()
+    out_rot[:, 1:] = hv_hw[1] @ hv_hw[0] @ rotations[:, 1:]
+    return out_pos, out_rot
 
 
 def recover_pose(positions: np.ndarray, rotations: np.ndarray, bone_vectors: np.ndarray):

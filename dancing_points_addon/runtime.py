@@ -36,7 +36,8 @@ from .partner_pose import HandHold, HipTwist, PartnerPose, hip_heading_from_prob
 from .synthesis_options import SynthesisOptions
 from .tracked_pose import TrackedOptions, TrackedPose
 from .nets import contact_floor_levels, default_pose, load_nets, meta_json
-from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, bone_vectors_from_pose)
+from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, Recoveries,
+                   bone_vectors_from_pose)
 from .representation import hip_frame, root_compose, to_local, to_world
 from .rotations import quat_to_matrix
 from .skeleton import JOINT_INDEX, LOWER_BODY, TRACKED, joint_rows
@@ -122,7 +123,7 @@ class Synthesizer:
                              for r, p in self.default_pose.items()}
         self.cleaner = InputCleaner(F.pose_positions(self.default_pose["tracked"])[TRACKED],
                                     self.tracked_options.returns)
-        self._recovery = (PoseRecovery(self.bone_vectors["tracked"]), PoseRecovery(self.bone_vectors["partner"]))
+        self._recovery = Recoveries([PoseRecovery(self.bone_vectors[r]) for r in ("tracked", "partner")])
         # each dancer's floor level per foot point (training scale), from the contact network
         contacts = nets.get("contacts")
         self.floor_levels = None if contacts is None else contact_floor_levels(getattr(contacts, "meta", {}) or {})
@@ -392,7 +393,7 @@ class Synthesizer:
                 pos[1, :, 0] += dx
                 pos[1, :, 2] += dz
                 self.partner.root = self.partner.root + np.array([dx, dz, 0.0, 0.0])
-        rigid = [self._recovery[w](pos[w], rot[w]) for w in (0, 1)]
+        rigid = list(zip(*self._recovery(pos, rot)))  # both dancers' poses at once
         if self._anchor > 0.0:  # her legs' twist within the skeleton's (the anchor pulls their joints)
             self._leg_joints.twist(*rigid[1])
         for d, (p, r), c in zip((self.tracked, self.partner), rigid, (tc, pc)):
