@@ -55,7 +55,7 @@ def stages():
         (follower.Placement, "smooth", "placement: smoothing"), (follower.Placement, "target", "placement: target"),
         (follower.Placement, "key_roots", "placement: key roots"), (follower.Placement, "step", "placement: step"),
         (follower.Separation, "push", "separation"), (partner_pose.HandHold, "wrist_targets", "holds"),
-        (partner_pose.HipTwist, "step", "her hips' turn"), (dancer_state.DancerState, "set_pose", "state set"),
+        (partner_pose.HipTwist, "step", "her hips' turn"), (runtime, "set_poses", "state set"),
         (dancer_state.DancerState, "keep_footing", "footing"), (runtime.DuetFrames, "put", "frames kept"),
     ]
 

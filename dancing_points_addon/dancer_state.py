@@ -73,8 +73,15 @@ class DancerState:
 
     def set_pose(self, pos_world, rot_world, contacts):
         """Replace the state's pose (world) by a post-processed one."""
-        self.pose = F.pose_features(*pose_to_local(pos_world[None], rot_world[None], self.root[None]),
-                                    contacts[None])[0]
+        set_poses((self,), pos_world[None], rot_world[None], contacts[None])
+
+
+def set_poses(dancers, pos_world, rot_world, contacts):
+    """Each dancer's :meth:`DancerState.set_pose` at once: world poses ``(D, 31, 3)``,
+    ``(D, 31, 3, 3)`` and contacts ``(D, 4)`` (per pose, the same products as one's)."""
+    roots = np.array([d.root for d in dancers])
+    for d, pose in zip(dancers, F.pose_features(*pose_to_local(pos_world, rot_world, roots), contacts)):
+        d.pose = pose
 
 
 def limit_drift(pos, limit):

@@ -26,7 +26,7 @@ import numpy as np
 
 from . import features as F
 from .calibration import TRAIN_HEIGHT, Calibration, apply_calibration, calibrate, check_role, height_from_head
-from .dancer_state import DancerState, settle_step, tracker_step
+from .dancer_state import DancerState, set_poses, settle_step, tracker_step
 from .device_follow import DeviceFollow, hand_flex
 from .duet import Duet, DuetFrame, DuetFrames
 from .input_cleaning import InputCleaner
@@ -381,8 +381,9 @@ class Synthesizer:
         rel, pos, rot, con = tracker_step(dancers, np.array([tk_roots, pk_roots]), np.array([tk_tr, pk_tr]))
         prev = self.partner.root  # her new root: her tracker's proposal, placed
         partner_root = np.array(placement.step(prev.tolist(), root_compose(prev, rel[1]).tolist(), goal))
-        pos, rot, (tc, pc) = settle_step(dancers, (root, partner_root), pos, rot, con,
-                                         (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
+        pos, rot, con = settle_step(dancers, (root, partner_root), pos, rot, con,
+                                    (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
+        tc, pc = con
         if self._anchor > 0.0:  # her lower body pulled towards the pose anchor's
             legs = outs["anchor"][0].astype(np.float64).reshape(-1, 3)
             pp = pos[1]
@@ -393,11 +394,11 @@ class Synthesizer:
                 pos[1, :, 0] += dx
                 pos[1, :, 2] += dz
                 self.partner.root = self.partner.root + np.array([dx, dz, 0.0, 0.0])
-        rigid = list(zip(*self._recovery(pos, rot)))  # both dancers' poses at once
+        pos, rot = self._recovery(pos, rot)  # both dancers' poses at once
+        rigid = list(zip(pos, rot))  # (views: what changes them in place changes these)
         if self._anchor > 0.0:  # her legs' twist within the skeleton's (the anchor pulls their joints)
             self._leg_joints.twist(*rigid[1])
-        for d, (p, r), c in zip((self.tracked, self.partner), rigid, (tc, pc)):
-            d.set_pose(p, r, c)  # the next step starts from the consistent skeleton pose
+        set_poses(dancers, pos, rot, con)  # the next step starts from the consistent skeleton pose
         self.tracked.keep_footing(self.tracked_options.footing)  # his state back on its feet if it drifted off
         if self._anchor > 0.0:  # her output's hip joints turn with her pelvis (her state's need not)
             self._leg_joints.hips(*rigid[1])
