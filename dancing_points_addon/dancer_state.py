@@ -12,8 +12,7 @@ import numpy as np
 
 from . import features as F
 from .option_checks import check_range
-from .representation import (DEVICE_FROM_HEAD, pose_to_local, pose_to_world, root_from_head, rot_to_local,
-                             to_local)
+from .representation import DEVICE_FROM_HEAD, pose_to_local, pose_to_world, root_from_head
 from .skeleton import FEET, HEAD_BONE, TRACKED
 
 
@@ -107,8 +106,7 @@ def recentre(pos, rot):
     out_p, out_r = np.empty_like(pos), np.empty_like(rot)
     for i in range(len(pos)):
         frame = root_from_head(pos[i, TRACKED[0]], rot[i, HEAD_BONE] @ DEVICE_FROM_HEAD)
-        out_p[i] = to_local(pos[i], frame)
-        out_r[i] = rot_to_local(rot[i], frame)
+        out_p[i], out_r[i] = pose_to_local(pos[i], rot[i], frame)
     return out_p, out_r
 
 
