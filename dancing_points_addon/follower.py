@@ -42,7 +42,7 @@ import numpy as np
 from .features import FPS
 from .foot_lock import FootLockOptions
 from .option_checks import check_kinds, check_range
-from .representation import blend_root, compose_floats, relative_rows
+from .representation import blend_root, compose_floats, relative_rows, vector_norm
 from .scalar_kernels import segments_gap_s
 from .skeleton import JOINT_INDEX
 
@@ -223,7 +223,7 @@ class Placement:
             arrays = tuple(b * np.concatenate([p[1:], p[-1:]]) + (1.0 - b) * a for p, a in zip(prev, arrays))
         self._prev = arrays
         roots = arrays[0].copy()  # heading rows back to unit length
-        roots[:, 2:] /= np.linalg.norm(roots[:, 2:], axis=-1, keepdims=True)
+        roots[:, 2:] /= vector_norm(roots[:, 2:], keepdims=True)
         return (roots,) + tuple(arrays[1:])
 
     def target(self, leader_root, l_roots, f_roots):

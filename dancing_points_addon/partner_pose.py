@@ -12,7 +12,7 @@ import numpy as np
 
 from .follower import PELVIS, HipOptions, HoldOptions
 from .foot_lock import KinematicContacts
-from .representation import to_world
+from .representation import to_world, vector_norm
 from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, WRISTS
 
 
@@ -128,7 +128,7 @@ class HandHold:
         of hers holds (:meth:`targets`)."""
         lw = to_world(l_tr[0, 1:], l_roots[0])
         fw = to_world(f_tr[0, 1:], f_roots[0])
-        pred = np.linalg.norm(lw[:, None] - fw[None], axis=-1)
+        pred = vector_norm(lw[:, None] - fw[None])
         tg = self.targets(leader_pos, follower_pos, pred, arm_length)
         if tg[0] is None and tg[1] is None:
             return None
@@ -146,12 +146,13 @@ class HandHold:
         out = [None, None]
         pd = pred_dist.tolist()
         his = None  # his wrists, as lists, once needed
+        # soft partner: his two hands weighted by a softmax of their predicted
+        # distances (no discrete choice to flip on noise); its exponents, per
+        # hand of hers, from the nearer of his (numpy's exp, both hands in one call)
+        near = [pd[1][j] if pd[1][j] < pd[0][j] else pd[0][j] for j in (0, 1)]
+        ex = np.exp([-(pd[i][j] - near[j]) / o.soft for j in (0, 1) for i in (0, 1)]).tolist()
         for j in (0, 1):
-            col = (pd[0][j], pd[1][j])
-            d = col[1] if col[1] < col[0] else col[0]
-            # soft partner: his two hands weighted by a softmax of their
-            # predicted distances (no discrete choice to flip on noise)
-            e0, e1 = np.exp(-(pred_dist[:, j] - d) / o.soft).tolist()  # numpy's exp, as before
+            e0, e1 = ex[2 * j], ex[2 * j + 1]
             sm = e0 + e1
             soft = (e0 / sm, e1 / sm)
             if o.soft_rate > 0 and self._soft[j] is not None:

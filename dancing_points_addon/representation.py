@@ -27,6 +27,12 @@ def norm(x: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("...i,...i->...", x, x))
 
 
+def vector_norm(x: np.ndarray, keepdims: bool = False) -> np.ndarray:
+    """``np.linalg.norm(x, axis=-1, keepdims=keepdims)`` of a float array, its
+    arithmetic (the same bits) without its argument checks."""
+    return np.sqrt(np.add.reduce(x * x, axis=-1, keepdims=keepdims))
+
+
 def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Dot products of component-major vectors ``(3, …)``, summed in the order
     :func:`norm`'s einsum uses (``(x + z) + y``), so both give the same bits."""
