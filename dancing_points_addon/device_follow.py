@@ -64,6 +64,10 @@ class DeviceFollowOptions:
             check_range("DeviceFollowOptions", name, getattr(self, name), 0.0, 180.0)
         check_range("DeviceFollowOptions", "forearm_share", self.forearm_share, 0.0, 1.0)
 _J = JOINT_INDEX
+# An arm's joints (consecutive in the SPEC order), and where each lies among them
+_ARM = ("clavicle", "humerus", "radius", "wrist", "hand", "fingers", "thumb")
+_CLAVICLE, _HUMERUS, _RADIUS, _WRIST, _HAND = range(5)
+_FOREARM, _TURNED, _FLEXED = (2, 3, 4, 5, 6), (3, 4, 5, 6), (4, 5)  # the bones each kind of turn moves
 _DEVICE_FROM_HEAD = tuple(DEVICE_FROM_HEAD.ravel().tolist())
 
 
@@ -145,13 +149,10 @@ class DeviceFollow:
         self.sides = []
         for s in "lr":
             e = bv[_J[s + "wrist"]]
-            self.sides.append({"clavicle": _J[s + "clavicle"], "humerus": _J[s + "humerus"],
-                               "forearm": joint_rows(_J[s + n] for n in ("radius", "wrist", "hand", "fingers",
-                                                                          "thumb")),
-                               "radius": _J[s + "radius"], "wrist": _J[s + "wrist"], "hand": _J[s + "hand"],
-                               "turned": joint_rows(_J[s + n] for n in ("wrist", "hand", "fingers", "thumb")),
-                               "flexed": joint_rows((_J[s + "hand"], _J[s + "fingers"])),
-                               "axis": tuple((e / np.linalg.norm(e)).tolist())})
+            block = joint_rows(_J[s + n] for n in _ARM)
+            if not isinstance(block, slice) or block.step != 1:
+                raise ValueError("DeviceFollow: an arm's joints must be consecutive, in the order " + ", ".join(_ARM))
+            self.sides.append({"block": block, "axis": tuple((e / np.linalg.norm(e)).tolist())})
         if hand_flex is not None and hand_bone == "hand":
             for side, flex in zip(self.sides, hand_flex):  # the forearm end from the hand: R_w = R_h · flexᵀ
                 side["unflex"] = tuple(np.asarray(flex, dtype=np.float64).T.ravel().tolist())
@@ -172,12 +173,16 @@ class DeviceFollow:
             rows[hd] = head
             P[hd] = P[un] + np.reshape(head, (3, 3)) @ self.head_vec
         for side, target in zip(self.sides, hands):
-            if target is not None:
-                self._hand(P, rows, side, np.ravel(target).tolist())
+            if target is not None:  # the arm's points and rotations as lists, back in one write each
+                block = side["block"]
+                pts, rts = P[block].tolist(), rows[block].tolist()
+                self._hand(pts, rts, side, np.ravel(target).tolist())
+                P[block], rows[block] = pts, rts
         return P, R
 
     def _hand(self, P, rows, side, target):
-        w, rad = side["wrist"], side["radius"]
+        """One arm (:data:`_ARM`'s points ``P`` and rotation rows ``rows``,
+        lists, modified) turned to its device's ``target``."""
         e = side["axis"]
         a = None
         if self.hand_bone == "wrist":  # the device gives the forearm's direction
@@ -185,82 +190,81 @@ class DeviceFollow:
         elif "unflex" in side and self.forearm_share > 0.0:  # estimated from the grip, part of the way
             est = mat_vec(mat_mul(target, side["unflex"]), *e)
             k = self.forearm_share
-            v = [k * x + (1.0 - k) * y for x, y in zip(est, mat_vec(rows[w].tolist(), *e))]
+            v = [k * x + (1.0 - k) * y for x, y in zip(est, mat_vec(rows[_WRIST], *e))]
             n = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
             a = (v[0] / n, v[1] / n, v[2] / n) if n > 1e-9 else None
-        if a is not None and not self._forearm(P, rows, side, a):  # out of reach: the elbow swung alone
-            self._elbow(P, rows, side, a)
-        Rw = rows[w].tolist()
+        if a is not None and not self._forearm(P, rows, a):  # out of reach: the elbow swung alone
+            self._elbow(P, rows, a)
+        Rw = rows[_WRIST]
         d = mat_vec(Rw, *e)  # the forearm's direction
-        bone = Rw if self.hand_bone == "wrist" else rows[side["hand"]].tolist()
+        bone = Rw if self.hand_bone == "wrist" else rows[_HAND]
         phi = twist_angle(mat_mul(target, transpose_s(bone)), d)
         # the forearm end's twist relative to the rest of the forearm, kept within its limit
-        tau = twist_angle(mat_mul(transpose_s(rows[rad].tolist()), Rw), e)
+        tau = twist_angle(mat_mul(transpose_s(rows[_RADIUS]), Rw), e)
         lim = self.limits[1]
         want = (tau + phi + pi) % (2.0 * pi) - pi  # the new twist, in (-pi, pi]
         phi = min(max(want, -lim), lim) - tau
         if abs(phi) > 1e-9:
             D = _axis_angle(d, phi)
             Rw = mat_mul(D, Rw)
-            self._turn(P, rows, side["turned"], D, P[w].tolist())
+            self._turn(P, rows, _TURNED, D, P[_WRIST])
         if self.hand_bone == "hand":
-            h = side["hand"]
             local = limit_rotation(mat_mul(transpose_s(Rw), target), self.limits[2])  # within its limit of the forearm
-            D = mat_mul(mat_mul(Rw, local), transpose_s(rows[h].tolist()))
-            self._turn(P, rows, side["flexed"], D, P[w].tolist())
+            D = mat_mul(mat_mul(Rw, local), transpose_s(rows[_HAND]))
+            self._turn(P, rows, _FLEXED, D, P[_WRIST])
 
     @classmethod
-    def _forearm(cls, P, rows, side, axis):
+    def _forearm(cls, P, rows, axis):
         """Point the forearm's end (bone ``*wrist``) along ``axis`` (unit), its end
         point (the tracked wrist) kept: the arm's two-bone IK takes the radius's
         end to ``wrist − |wrist bone| · axis``, its elbow swung round the shoulder
         towards where a forearm along ``axis`` would put it, then the wrist bone
         turns onto ``axis`` about the radius's end. False (and nothing changed)
         where that radius's end is out of the arm's reach."""
-        hum, rad, w = side["humerus"], side["radius"], side["wrist"]
-        sh, el, re, wr = P[side["clavicle"]].tolist(), P[hum].tolist(), P[rad].tolist(), P[w].tolist()
+        sh, el, re, wr = P[_CLAVICLE], P[_HUMERUS], P[_RADIUS], P[_WRIST]
         ax, ay, az = axis
         lw, l1, l2 = dist(re, wr), dist(sh, el), dist(el, re)  # wrist bone, humerus, radius
         goal = (wr[0] - lw * ax, wr[1] - lw * ay, wr[2] - lw * az)
         if not abs(l1 - l2) * (1.0 + 1e-9) < dist(sh, goal) < (l1 + l2) * (1.0 - 1e-9):
             return False
         pole = (goal[0] - l2 * ax, goal[1] - l2 * ay, goal[2] - l2 * az)
-        cls._bend(P, rows, side, sh, el, re, goal, pole)
+        cls._bend(P, rows, sh, el, re, goal, pole)
         # the wrist bone onto the tracked wrist (along ``axis``: the radius's end is on its goal)
-        re, cur = P[rad].tolist(), P[w].tolist()
+        re, cur = P[_RADIUS], P[_WRIST]
         D = rot_between_s(cur[0] - re[0], cur[1] - re[1], cur[2] - re[2], wr[0] - re[0], wr[1] - re[1], wr[2] - re[2])
-        cls._turn(P, rows, side["turned"], D, re)
+        cls._turn(P, rows, _TURNED, D, re)
         return True
 
     @classmethod
-    def _elbow(cls, P, rows, side, forearm):
+    def _elbow(cls, P, rows, forearm):
         """Swing the elbow round the shoulder–wrist line towards where a forearm
         pointing along ``forearm`` (unit) would put it; the wrist stays."""
-        sh, el, wr = P[side["clavicle"]].tolist(), P[side["humerus"]].tolist(), P[side["wrist"]].tolist()
+        sh, el, wr = P[_CLAVICLE], P[_HUMERUS], P[_WRIST]
         n = dist(el, wr)
         pole = (wr[0] - forearm[0] * n, wr[1] - forearm[1] * n, wr[2] - forearm[2] * n)
-        cls._bend(P, rows, side, sh, el, wr, wr, pole)
+        cls._bend(P, rows, sh, el, wr, wr, pole)
 
     @classmethod
-    def _bend(cls, P, rows, side, sh, el, end, target, pole):
+    def _bend(cls, P, rows, sh, el, end, target, pole):
         """The arm's two-bone IK (shoulder ``sh``, elbow ``el``, ``end`` the lower
         bone's end) to ``target`` with the elbow towards ``pole``, applied: the
         upper arm turned, the forearm's bones turned and moved with the elbow."""
-        hum = side["humerus"]
         new_el, _, r1, r2 = two_bone_s(sh, el, end, target, pole)
-        rows[hum] = mat_mul(r1, rows[hum].tolist())
-        cls._turn(P, rows, side["forearm"], r2, el)
-        P[side["forearm"]] += np.subtract(new_el, el)
-        P[hum] = new_el
+        rows[_HUMERUS] = mat_mul(r1, rows[_HUMERUS])
+        cls._turn(P, rows, _FOREARM, r2, el)
+        dx, dy, dz = new_el[0] - el[0], new_el[1] - el[1], new_el[2] - el[2]
+        for b in _FOREARM:
+            x, y, z = P[b]
+            P[b] = (x + dx, y + dy, z + dz)
+        P[_HUMERUS] = new_el
 
     @staticmethod
     def _turn(P, rows, bones, D, pivot):
         """Bones ``bones`` turned by ``D`` (row-major 9-tuple) about ``pivot``
         (their end points move along)."""
-        rows[bones] = [mat_mul(D, r) for r in rows[bones].tolist()]
         px, py, pz = pivot
-        moved = []
-        for x, y, z in P[bones].tolist():
+        for b in bones:
+            rows[b] = mat_mul(D, rows[b])
+            x, y, z = P[b]
             vx, vy, vz = mat_vec(D, x - px, y - py, z - pz)
-            moved.append((px + vx, py + vy, pz + vz))
-        P[bones] = moved
+            P[b] = (px + vx, py + vy, pz + vz)
