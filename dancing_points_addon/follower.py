@@ -208,6 +208,7 @@ class Placement:
         self.o = options
         self._prev = None
         self._plan = None  # :meth:`_key_plan`'s
+        self._shift = ()  # :meth:`smooth`'s frame indices
         self.leashed = 0  # frames on which the leash engaged (reported, expected rare)
 
     def smooth(self, *arrays):
@@ -220,7 +221,10 @@ class Placement:
             return arrays
         prev = self._prev
         if prev is not None:
-            arrays = tuple(b * np.concatenate([p[1:], p[-1:]]) + (1.0 - b) * a for p, a in zip(prev, arrays))
+            n = len(prev[0])
+            if len(self._shift) != n:  # last frame's predictions one frame on, the last one held
+                self._shift = np.minimum(np.arange(1, n + 1), n - 1)
+            arrays = tuple(b * p.take(self._shift, axis=0) + (1.0 - b) * a for p, a in zip(prev, arrays))
         self._prev = arrays
         roots = arrays[0].copy()  # heading rows back to unit length
         roots[:, 2:] /= vector_norm(roots[:, 2:], keepdims=True)
@@ -231,8 +235,8 @@ class Placement:
         over the first ``horizon`` predicted frames (as ``(dx, dz, cos, sin)``),
         and the world root it gives at the leader's current root."""
         h = max(1, min(self.o.horizon, len(f_roots)))
-        rel = relative_rows(np.ascontiguousarray(l_roots[:h].T), np.ascontiguousarray(f_roots[:h].T))
-        dx, dz, c, s = (float(v) for v in rel.mean(axis=1))
+        rel = relative_rows(l_roots[:h].T, f_roots[:h].T)  # (C-ordered: relative_rows copies its roots)
+        dx, dz, c, s = (np.add.reduce(rel, axis=1) / h).tolist()  # (rel.mean(axis=1)'s arithmetic)
         n = max(hypot(c, s), 1e-9)
         d = hypot(dx, dz)
         if d > self.o.max_offset:  # farther than a couple stands: the nearest point within reach
