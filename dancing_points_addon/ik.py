@@ -35,6 +35,7 @@ from math import cos, isfinite, radians, sqrt
 
 import numpy as np
 
+from .representation import cross, vector_norm
 from .scalar_kernels import (about, add3, align_s, angle_s, frame_s, mat_mul, minimal_turns, rot_between_s,
                              rot_scale, smooth01, sub3, transpose_s, two_bone_points_s, two_bone_s)
 from .skeleton import JOINT_INDEX, PARENTS
@@ -60,14 +61,15 @@ def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """
     u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
-    u, v = np.broadcast_arrays(u, v)
-    nu = np.linalg.norm(u, axis=-1, keepdims=True)
-    nv = np.linalg.norm(v, axis=-1, keepdims=True)
+    if u.shape != v.shape:
+        u, v = np.broadcast_arrays(u, v)
+    nu = vector_norm(u, keepdims=True)
+    nv = vector_norm(v, keepdims=True)
     ok = (nu[..., 0] > 1e-12) & (nv[..., 0] > 1e-12)
     u = u / np.where(nu > 1e-12, nu, 1.0)
     v = v / np.where(nv > 1e-12, nv, 1.0)
-    c = np.sum(u * v, axis=-1)
-    w = np.cross(u, v)
+    c = np.add.reduce(u * v, axis=-1)  # (np.sum's arithmetic)
+    w = cross(u, v)
     opposite = 1.0 + c < 1e-12
     k = 1.0 / np.where(opposite, 1.0, 1.0 + c)
     R = k[..., None, None] * w[..., :, None] * w[..., None, :]
@@ -80,12 +82,12 @@ def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     R[..., 1, 2] -= w[..., 0]
     R[..., 2, 0] -= w[..., 1]
     R[..., 2, 1] += w[..., 0]
-    if np.any(opposite):
+    if opposite.any():
         # half turn about an axis perpendicular to u
         e = np.where(np.abs(u[..., :1]) < 0.9, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
         a = np.cross(u, e)
         with np.errstate(invalid="ignore"):  # (a zero u's row, not opposite, is not used)
-            a /= np.linalg.norm(a, axis=-1, keepdims=True)
+            a /= vector_norm(a, keepdims=True)
         half = 2.0 * a[..., :, None] * a[..., None, :] - np.eye(3)
         R = np.where(opposite[..., None, None], half, R)
     return np.where(ok[..., None, None], R, np.eye(3))
@@ -93,8 +95,8 @@ def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 def _perp_unit(d: np.ndarray, n: np.ndarray) -> tuple:
     """Component of ``d`` perpendicular to the unit ``n``, normalised; and its norm."""
-    p = d - np.sum(d * n, axis=-1, keepdims=True) * n
-    pn = np.linalg.norm(p, axis=-1, keepdims=True)
+    p = d - np.add.reduce(d * n, axis=-1, keepdims=True) * n  # (np.sum's arithmetic)
+    pn = vector_norm(p, keepdims=True)
     return p / np.where(pn > 1e-12, pn, 1.0), pn[..., 0]
 
 
@@ -121,16 +123,17 @@ def two_bone_ik(hip, knee, ankle, target, pole=None):
     ankle = np.asarray(ankle, dtype=np.float64)
     target = np.asarray(target, dtype=np.float64)
     pole = knee if pole is None else np.asarray(pole, dtype=np.float64)
-    hip, knee, ankle, target, pole = np.broadcast_arrays(hip, knee, ankle, target, pole)
+    if not hip.shape == knee.shape == ankle.shape == target.shape == pole.shape:
+        hip, knee, ankle, target, pole = np.broadcast_arrays(hip, knee, ankle, target, pole)
     up = knee - hip
     lo = ankle - knee
-    l1 = np.linalg.norm(up, axis=-1)
-    l2 = np.linalg.norm(lo, axis=-1)
+    l1 = vector_norm(up)
+    l2 = vector_norm(lo)
     d = target - hip
-    dist = np.linalg.norm(d, axis=-1)
+    dist = vector_norm(d)
     # direction hip -> target (fallback: the old ankle direction, then straight down)
     old = ankle - hip
-    on = np.linalg.norm(old, axis=-1)
+    on = vector_norm(old)
     n = np.where((dist > 1e-12)[..., None], d / np.maximum(dist, 1e-300)[..., None],
                  np.where((on > 1e-12)[..., None], old / np.maximum(on, 1e-300)[..., None],
                           np.array([0.0, -1.0, 0.0])))
@@ -142,7 +145,7 @@ def two_bone_ik(hip, knee, ankle, target, pole=None):
     b2, bn2 = _perp_unit(up, n)
     b = np.where((bn > 1e-9)[..., None], b, b2)
     bad = (bn <= 1e-9) & (bn2 <= 1e-9)
-    if np.any(bad):
+    if bad.any():
         e = np.where(np.abs(n[..., :1]) < 0.9, np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
         b3, _ = _perp_unit(e, n)
         b = np.where(bad[..., None], b3, b)
