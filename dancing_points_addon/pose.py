@@ -246,17 +246,14 @@ def move_keeping_feet(positions, rotations, shift):
     positions = positions + np.asarray(shift, dtype=np.float64)
     rotations = rotations.copy()
     rows = rotations.reshape(-1, 9)
-    for hip, femur, tibia, foot, toes in _LEGS:  # on Python floats (two_bone_s): a handful of products
-        k, a = positions[femur].tolist(), positions[tibia].tolist()
-        knee, ankle, r1, r2 = two_bone_s(positions[hip].tolist(), k, a, old[tibia].tolist(), k)
-        positions[femur], positions[tibia] = knee, ankle
-        positions[[foot, toes]] += (ankle[0] - a[0], ankle[1] - a[1], ankle[2] - a[2])
-        rows[femur] = mat_mul(r1, rows[femur].tolist())
-        rows[tibia] = mat_mul(r2, rows[tibia].tolist())
+    for leg in _LEG_ROWS:  # on Python floats (two_bone_s): a handful of products; each leg read, written once
+        (hip, k, a, foot, toes), (r_femur, r_tibia) = positions[leg].tolist(), rows[leg][1:3].tolist()
+        knee, ankle, r1, r2 = two_bone_s(hip, k, a, old[leg.start + 2].tolist(), k)
+        dx, dy, dz = ankle[0] - a[0], ankle[1] - a[1], ankle[2] - a[2]
+        positions[leg.start + 1:leg.stop] = (knee, ankle, (foot[0] + dx, foot[1] + dy, foot[2] + dz),
+                                             (toes[0] + dx, toes[1] + dy, toes[2] + dz))
+        rows[leg.start + 1:leg.start + 3] = mat_mul(r1, r_femur), mat_mul(r2, r_tibia)
     return positions, rotations
-
-
-_LEGS = [tuple(JOINT_INDEX[s + n] for n in ("hipjoint", "femur", "tibia", "foot", "toes")) for s in "lr"]
 
 
 # A foot point may sink at most this far below its floor level (its height
