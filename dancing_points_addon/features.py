@@ -88,6 +88,17 @@ def mapping_input(roots: np.ndarray, tracked: np.ndarray) -> np.ndarray:
     return out.reshape(B, MAP_IN)
 
 
+def mapping_inputs(first_roots: np.ndarray, first_tracked: np.ndarray, roots: np.ndarray,
+                   tracked: np.ndarray) -> np.ndarray:
+    """:func:`mapping_input` of frames in a row, ``(B, MAP_IN)``: the first one's
+    window ``(PAST, 4)``, ``(PAST, 3, 3)``, then each next frame's root ``(B − 1, 4)``
+    and points ``(B − 1, 3, 3)`` (each window slid on by one). Each row has the
+    bits its window alone gives."""
+    r, p = np.concatenate([first_roots, roots]), np.concatenate([first_tracked, tracked])
+    idx = np.arange(len(roots) + 1)[:, None] + np.arange(PAST)
+    return mapping_input(r[idx], p[idx])
+
+
 def _dancer_future(ref, roots, tracked):
     r = root_relative(ref[:, None], roots)
     p = to_local(tracked, roots).reshape(roots.shape[:2] + (POINTS_DIM,))

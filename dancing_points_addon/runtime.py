@@ -52,7 +52,7 @@ class _Read(NamedTuple):
     tracked: np.ndarray  # (3, 3) the three points, cleaned, at the tracker's scale
     root: np.ndarray  # (4,) their root
     scale: float  # the tracker's scale
-    x: np.ndarray  # (1, MAP_IN) the mapping's input
+    x: np.ndarray | None  # (1, MAP_IN) the mapping's input (None: :meth:`Synthesizer.synthesize` makes a block's)
     devices: tuple | None  # the devices' rotations for DeviceFollow (None: not followed)
 
 
@@ -288,7 +288,7 @@ class Synthesizer:
         read = self._read(positions, quats, valid)
         return self._advance(read, self._input_nets(read.x, read.root[None]))
 
-    def _read(self, positions, quats, valid) -> _Read:
+    def _read(self, positions, quats, valid, mapping: bool = True) -> _Read:
         """The input side of a frame: the devices cleaned (:class:`~.input_cleaning.InputCleaner`), at
         the tracker's scale, into the input history, and the mapping's input.
         It needs the networks' outputs of the last frame only when a device is
@@ -318,7 +318,8 @@ class Synthesizer:
             self.hist_roots[-1] = root
             self.hist_tracked[-1] = tracked_s
         self._reads += 1
-        return _Read(tracked_s, root, s, F.mapping_input(self.hist_roots[None], self.hist_tracked[None]), devices)
+        x = F.mapping_input(self.hist_roots[None], self.hist_tracked[None]) if mapping else None
+        return _Read(tracked_s, root, s, x, devices)
 
     def _input_nets(self, x, roots) -> dict:
         """The networks that read the mapping's input only, on ``x (B, MAP_IN)``
@@ -479,8 +480,12 @@ class Synthesizer:
             end = t + 1
             while end < min(t + READ_AHEAD, T) and valid[end].all():
                 end += 1
-            reads = [self._read(tk.positions[k], tk.quats[k], valid[k]) for k in range(t, end)]
-            outs = self._input_nets(np.concatenate([r.x for r in reads]), np.array([r.root for r in reads]))
+            reads = [self._read(tk.positions[t], tk.quats[t], valid[t], False)]
+            first = self.hist_roots.copy(), self.hist_tracked.copy()  # the first frame's window, then each next
+            reads += [self._read(tk.positions[k], tk.quats[k], valid[k], False) for k in range(t + 1, end)]
+            x = F.mapping_inputs(*first, np.array([r.root for r in reads[1:]]).reshape(-1, 4),
+                                 np.array([r.tracked for r in reads[1:]]).reshape(-1, 3, 3))
+            outs = self._input_nets(x, np.array([r.root for r in reads]))
             for i, read in enumerate(reads):
                 a, b = self._advance(read, {k: v[i:i + 1] for k, v in outs.items()})
                 frames.put(t, a, b, self.last_prediction, self.planted())

@@ -140,3 +140,15 @@ def test_one_pose_frames_are_the_batch_forms_bit_for_bit():
     for p, r, root in zip(pos[:20, None], rot[:20, None], roots[:20, None]):
         lp, lr = pose_to_local(p, r, root)
         assert np.array_equal(lp, to_local(p, root)) and np.array_equal(lr, rot_to_local(r, root))
+
+
+def test_mapping_inputs_of_a_block_are_each_windows_bit_for_bit():
+    """The read-ahead block's mapping inputs (one call, windows slid on) are each window's own."""
+    rng = np.random.default_rng(4)
+    roots, tracked = rng.normal(size=(F.PAST + 40, 4)), rng.normal(size=(F.PAST + 40, 3, 3))
+    roots[:, 2:] /= np.linalg.norm(roots[:, 2:], axis=1, keepdims=True)
+    for n in (1, 2, 5, 41):
+        block = F.mapping_inputs(roots[:F.PAST], tracked[:F.PAST], roots[F.PAST:F.PAST + n - 1],
+                                 tracked[F.PAST:F.PAST + n - 1])
+        one = [F.mapping_input(roots[None, k:k + F.PAST], tracked[None, k:k + F.PAST]) for k in range(n)]
+        assert np.array_equal(block, np.concatenate(one))
