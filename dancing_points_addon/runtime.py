@@ -38,7 +38,7 @@ from .tracked_pose import TrackedOptions, TrackedPose
 from .nets import contact_floor_levels, default_pose, load_nets, meta_json
 from .pose import (LEG_TWIST_DEG, FloorGuard, LegJoints, OutputSmoothing, PoseRecovery, Recoveries,
                    bone_vectors_from_pose)
-from .representation import hip_frame, root_compose, to_local, to_world
+from .representation import compose_floats, hip_frame, to_local, to_world
 from .rotations import quat_to_matrix
 from .skeleton import JOINT_INDEX, LOWER_BODY, TRACKED, joint_rows
 
@@ -380,8 +380,8 @@ class Synthesizer:
         goal = placement.goal(self._partner_target, pk_roots)
         dancers = (self.tracked, self.partner)
         rel, pos, rot, con = tracker_step(dancers, np.array([tk_roots, pk_roots]), np.array([tk_tr, pk_tr]))
-        prev = self.partner.root  # her new root: her tracker's proposal, placed
-        partner_root = np.array(placement.step(prev.tolist(), root_compose(prev, rel[1]).tolist(), goal))
+        prev = self.partner.root.tolist()  # her new root: her tracker's proposal (root_compose's), placed
+        partner_root = np.array(placement.step(prev, compose_floats(prev, rel[1].tolist()), goal))
         pos, rot, con = settle_step(dancers, (root, partner_root), pos, rot, con,
                                     (RECENTRE_POSE[self.role], RECENTRE_POSE[self.partner_role]))
         tc, pc = con
