@@ -93,12 +93,13 @@ SHIPPED = tuple(MODEL_FILES)
 
 CONFIGS = {
     # hidden units, epochs
-    # Teacher-forced ground-truth keys; current-pose noise
-    # (standard deviation up to 0.3 units) for the leader's trackers only: chosen per dancer on
-    # the val frames (train --split fit, evaluate --split val; the comparison
-    # is in models/README.md). The ablations get their dancer's settings.
-    "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": 384, "track_epochs": 60,
-             "pose_noise": {"leader": 0.3, "follower": 0.0},
+    # Teacher-forced ground-truth keys; the trackers' width and current-pose noise
+    # (standard deviation up to 0.3 units) per dancer, chosen on the val frames
+    # (train --split fit, evaluate --split val; the comparisons are in
+    # models/README.md and docs/experiments.md, "Smaller trackers"). The ablations
+    # get their dancer's settings.
+    "full": {"map_hidden": 384, "map_epochs": 60, "track_hidden": {"leader": 96, "follower": 192}, "track_epochs": 60,
+             "pose_noise": {"leader": 0.3, "follower": 0.3},
              # the bodies each dancer's tracker learns from (data.body_clips): each its own. Every body
              # the split allows (--tracker-bodies leader,follower,solo) lost on val: docs/experiments.md
              "bodies": {"leader": ("leader",), "follower": ("follower",)},
@@ -143,7 +144,7 @@ def main(argv=None):
     ap.add_argument("--map-wd", type=float, default=None, help="mapping AdamW weight decay (default 1e-4)")
     ap.add_argument("--track-epochs", type=int, default=None)
     ap.add_argument("--track-hidden", type=int, default=None,
-                    help="trackers' hidden units (default: the config's)")
+                    help="trackers' hidden units (both dancers; default: the config's, per dancer)")
     ap.add_argument("--pose-noise", type=float, default=None,
                     help="trackers (both dancers): perturb the current-pose input with Gaussian noise of a "
                          "standard deviation up to this many POSE_NOISE_UNITS (default: the config's, per dancer)")
@@ -314,13 +315,14 @@ def main(argv=None):
         epochs = args.track_epochs or cfg["track_epochs"]
         epochs = max(1, round(epochs * n_own / len(x)))  # the steps of the dancer's own clips
         log(f"{name}: {x.shape} -> {y.shape} ({', '.join(bodies)}; {epochs} epochs)")
-        pose_noise = cfg["pose_noise"][role] if isinstance(cfg["pose_noise"], dict) else cfg["pose_noise"]
-        m = cls(F.TRACK_IN, F.TRACK_OUT, cfg["track_hidden"], pose_dim=F.POSE_DIM, pose_noise=pose_noise)
+        pose_noise, hidden = (cfg[k][role] if isinstance(cfg[k], dict) else cfg[k]
+                              for k in ("pose_noise", "track_hidden"))
+        m = cls(F.TRACK_IN, F.TRACK_OUT, hidden, pose_dim=F.POSE_DIM, pose_noise=pose_noise)
         info1 = train_model(m, x, y, epochs, device=device, log=log, seed=args.seed)
         info = {"stage1": info1, "seconds": info1["seconds"]}
         # the start-up pose (and so the output skeleton): the first body's, unmirrored, unreshaped
         sel = where[:, 0] < n_first
-        meta = {"hidden": cfg["track_hidden"], "role": role, "pose_noise": pose_noise, "train": info,
+        meta = {"hidden": hidden, "role": role, "pose_noise": pose_noise, "train": info,
                 **split_meta, "bodies": ",".join(bodies), "shape": cfg["shape"] if bodies != (role,) else None,
                 "default_pose": default_pose(x[sel], where[sel], own)}
         meta.update(extra or {})
