@@ -43,7 +43,7 @@ import numpy as np
 from .option_checks import check_range
 from .scalar_kernels import mat_mul, mat_vec, rot_between_s, transpose_s, two_bone_s
 from .representation import DEVICE_FROM_HEAD
-from .skeleton import JOINT_INDEX, joint_rows
+from .skeleton import JOINT_INDEX, joint_block
 
 
 
@@ -149,10 +149,8 @@ class DeviceFollow:
         self.sides = []
         for s in "lr":
             e = bv[_J[s + "wrist"]]
-            block = joint_rows(_J[s + n] for n in _ARM)
-            if not isinstance(block, slice) or block.step != 1:
-                raise ValueError("DeviceFollow: an arm's joints must be consecutive, in the order " + ", ".join(_ARM))
-            self.sides.append({"block": block, "axis": tuple((e / np.linalg.norm(e)).tolist())})
+            self.sides.append({"block": joint_block(_J[s + n] for n in _ARM),
+                               "axis": tuple((e / np.linalg.norm(e)).tolist())})
         if hand_flex is not None and hand_bone == "hand":
             for side, flex in zip(self.sides, hand_flex):  # the forearm end from the hand: R_w = R_h · flexᵀ
                 side["unflex"] = tuple(np.asarray(flex, dtype=np.float64).T.ravel().tolist())

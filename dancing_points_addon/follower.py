@@ -44,10 +44,10 @@ from .foot_lock import FootLockOptions
 from .option_checks import check_kinds, check_range
 from .representation import blend_root, compose_floats, relative_rows, vector_norm
 from .scalar_kernels import segments_gap_s
-from .skeleton import JOINT_INDEX
+from .skeleton import JOINT_INDEX, joint_rows
 
 PELVIS, NECK = JOINT_INDEX["root"], JOINT_INDEX["lowerneck"]
-_TORSO = slice(PELVIS, NECK + 1, NECK - PELVIS)  # the rows (pelvis, lower neck): a slice costs less than a list
+_TORSO = joint_rows((PELVIS, NECK))  # the rows (pelvis, lower neck)
 
 
 @dataclass(frozen=True)
@@ -258,11 +258,11 @@ class Placement:
         ``root`` (frame t − 1), eased towards the target placement.
         ``key_index``: per key k ≥ 2 the mapping index of frame t + k − 1 … (see
         runtime); key 1 uses the predicted first step."""
-        weights, lead_index = self._key_plan(key_index, len(l_roots))
+        weights, lead_index, steps = self._key_plan(key_index, len(l_roots))
         offset = [float(v) for v in offset]
         # one predicted step (frame t+1 -> t+2), taken for t-1 -> t and t -> t+1, and
         # the keys' predicted frames, all relative to the first predicted one (in one call)
-        step, *rels = relative_rows(f_roots[0][:, None], f_roots.take(self._steps, axis=0).T).T.tolist()
+        step, *rels = relative_rows(f_roots[0][:, None], f_roots.take(steps, axis=0).T).T.tolist()
         e1 = compose_floats([float(v) for v in root], step)
         e2 = compose_floats(e1, step)  # her frame t + 1 on the predicted path
         out = [blend_root(e1, compose_floats(leader_root.tolist(), offset), self.o.ease)]
@@ -272,16 +272,16 @@ class Placement:
 
     def _key_plan(self, key_index, n_lead):
         """Per ``key_index`` (kept while it is the same array): each key's ease
-        weight and his predicted frame's index; the predicted frames read
-        (:attr:`_steps`: the first step's, then the keys')."""
+        weight, his predicted frame's index, and her predicted frames read
+        (the first step's, then the keys')."""
         plan = self._plan
         if plan is None or plan[0] is not key_index or plan[1] != n_lead:
             ease = self.o.ease
             weights = [1.0 - (1.0 - ease) ** (idx + 2) for idx in key_index]  # k = idx + 2: frames after t - 1
             lead = [min(idx, n_lead - 1) for idx in key_index]
-            self._steps = np.concatenate([[1], key_index]).astype(np.intp)
-            plan = self._plan = (key_index, n_lead, weights, lead)
-        return plan[2], plan[3]
+            steps = np.concatenate([[1], key_index]).astype(np.intp)
+            plan = self._plan = (key_index, n_lead, weights, lead, steps)
+        return plan[2:]
 
     def key_roots(self, root, prev_root, f_roots, l_roots, leader_root, offset, key_index):
         """Her tracker's key roots (:meth:`keys`; ``prev_root``, the prediction

@@ -20,7 +20,7 @@ import numpy as np
 from .ik import two_bone_ik
 from .representation import dot3, norm, rot6d_to_matrix
 from .scalar_kernels import mat_mul, two_bone_s
-from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, PARENTS, joint_rows
+from .skeleton import HIPS, JOINT_INDEX, LOWER_BODY, PARENTS, joint_block, joint_rows
 
 N = len(PARENTS)
 # ANCESTORS[n, k] = 1 when bone k lies on the chain from the root to bone n (k != root)
@@ -154,7 +154,7 @@ def recover_pose(positions: np.ndarray, rotations: np.ndarray, bone_vectors: np.
 # -43..43 degrees, foot -32..44), rounded out.
 LEG_CHAINS = (LOWER_BODY[:5].tolist(), LOWER_BODY[5:].tolist())  # hip joint, thigh, shin, foot, toes; left, right
 LEG_TWIST_DEG = (0.0, 45.0, 0.0, 40.0, 0.0)  # per bone of a chain, both sides
-_HIP_ROWS, _LEG_ROWS = joint_rows(HIPS), tuple(joint_rows(c) for c in LEG_CHAINS)  # (slices: views)
+_HIP_ROWS, _LEG_ROWS = joint_rows(HIPS), tuple(joint_block(c) for c in LEG_CHAINS)  # (slices: views)
 
 
 class LegJoints:

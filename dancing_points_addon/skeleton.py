@@ -47,7 +47,6 @@ WRISTS = (JOINT_INDEX["lwrist"], JOINT_INDEX["rwrist"])
 LOWER_BODY = np.arange(JOINT_INDEX["lhipjoint"], JOINT_INDEX["rtoes"] + 1)
 
 
-
 def joint_rows(indices):
     """Joint indices as an index into an array's joint axis: a slice (a view,
     cheaper per frame than an index list) where they are evenly spaced and
@@ -57,6 +56,16 @@ def joint_rows(indices):
     if step > 0 and idx == list(range(idx[0], idx[-1] + 1, step)):
         return slice(idx[0], idx[-1] + 1, step)
     return idx
+
+
+def joint_block(indices) -> slice:
+    """Joints consecutive in the SPEC order, in that order, as a slice of an
+    array's joint axis (code that reads and writes them as one block); a
+    ValueError naming them otherwise."""
+    idx = [int(i) for i in indices]
+    if idx != list(range(idx[0], idx[0] + len(idx))):
+        raise ValueError("joints " + ", ".join(JOINT_NAMES[i] for i in idx) + " are not consecutive")
+    return slice(idx[0], idx[0] + len(idx))
 
 
 # Left/right mirror: index permutation of the 31 joints.

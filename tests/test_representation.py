@@ -152,3 +152,17 @@ def test_mapping_inputs_of_a_block_are_each_windows_bit_for_bit():
                                  tracked[F.PAST:F.PAST + n - 1])
         one = [F.mapping_input(roots[None, k:k + F.PAST], tracked[None, k:k + F.PAST]) for k in range(n)]
         assert np.array_equal(block, np.concatenate(one))
+
+
+def test_joint_blocks_are_slices_or_refused():
+    """An arm's or a leg's joints read as one block of rows; joints that are not
+    consecutive are refused by name, not read as a wrong block."""
+    from dancing_points_addon.skeleton import JOINT_INDEX, joint_block, joint_rows
+
+    arm = [JOINT_INDEX["l" + n] for n in ("clavicle", "humerus", "radius", "wrist", "hand", "fingers", "thumb")]
+    assert joint_block(arm) == slice(arm[0], arm[0] + 7)
+    with pytest.raises(ValueError, match="lhumerus, lclavicle"):
+        joint_block(arm[1::-1])
+    spread = (JOINT_INDEX["root"], JOINT_INDEX["lowerneck"])
+    assert np.array_equal(np.arange(31)[joint_rows(spread)], spread)
+    assert joint_rows(spread[::-1]) == list(spread[::-1])
